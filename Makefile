@@ -1,0 +1,32 @@
+# Two entry points for a fresh machine (see README.md):
+#   make demo   create .venv, install, and run the main job on the bundled default dataset
+#   make test   create .venv, install with the test extras, and run the default test suite
+# `make test-slow` runs the reference-quality tests marked `slow`.
+SHELL := /bin/bash
+VENV ?= .venv
+PY := $(VENV)/bin/python
+DEMO_OUT ?= demo-output
+
+.PHONY: demo test test-slow venv install install-test clean
+
+$(VENV)/bin/python:
+	@py=$$(scripts/find-python.sh) || exit 1; echo "using $$py"; "$$py" -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+
+install: $(VENV)/bin/python
+	$(PY) -m pip install --quiet -e .
+
+install-test: $(VENV)/bin/python
+	$(PY) -m pip install --quiet -e ".[test]"
+
+demo: install
+	$(VENV)/bin/lmpromp demo --out $(DEMO_OUT) --force
+
+test: install-test
+	$(PY) -m pytest -n 2 -q
+
+test-slow: install-test
+	$(PY) -m pytest -q -m slow
+
+clean:
+	rm -rf $(VENV) $(DEMO_OUT)

@@ -1,0 +1,69 @@
+"""The ``lmpromp`` command line (conventions in docs/cli.md).
+
+Every command has ``--help``.  A user error prints one line to stderr and exits
+with status 2, without a traceback.  Every ``--out`` refuses an existing target
+unless ``--force``; ``--quiet`` silences progress; ``--seed`` fixes randomness.
+
+Sub-command modules register themselves on :data:`app` (or add a typer
+sub-application) in :func:`_register`.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import typer
+
+from lmpromp_ppl.errors import LmprompError
+
+__all__ = ["app", "main"]
+
+app = typer.Typer(
+    name="lmpromp",
+    help="Latent-Manifold ProMPs: fit, compare engines, predict, reproduce the thesis.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+
+
+def _register() -> None:
+    import importlib
+
+    for module in ("data", "fit", "compare", "predict", "reproduce", "bench", "sbc", "demo"):
+        try:
+            importlib.import_module(f"lmpromp_ppl.cli.{module}")
+        except ModuleNotFoundError as exc:
+            if exc.name != f"lmpromp_ppl.cli.{module}":
+                raise
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``lmpromp`` console script."""
+    _register()
+    try:
+        app(args=argv, standalone_mode=False)
+    except LmprompError as exc:
+        print(f"lmpromp: error: {exc}", file=sys.stderr)
+        return 2
+    except (FileNotFoundError, PermissionError, IsADirectoryError) as exc:
+        print(f"lmpromp: error: {exc}", file=sys.stderr)
+        return 2
+    except typer.Exit as exc:
+        return exc.exit_code
+    except typer.Abort:
+        print("lmpromp: aborted", file=sys.stderr)
+        return 1
+    except Exception as exc:  # click usage errors
+        import click
+
+        if isinstance(exc, click.ClickException):
+            msg = exc.format_message().replace("\n", " ")
+            print(f"lmpromp: error: {msg}", file=sys.stderr)
+            return 2
+        raise
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

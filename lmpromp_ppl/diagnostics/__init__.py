@@ -1,0 +1,1 @@
+"""Approximation-quality diagnostics against NUTS."""

@@ -1,0 +1,1 @@
+"""Inference engines: CAVI (hand-derived, JAX), NUTS and SVI (NumPyro)."""
