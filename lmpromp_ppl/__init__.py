@@ -1,10 +1,29 @@
 """lmpromp-ppl: Latent-Manifold Probabilistic Movement Primitives in NumPyro.
 
 Importing the package switches JAX to float64 (:mod:`lmpromp_ppl._config`).
+
+>>> import lmpromp_ppl as lp
+>>> result = lp.fit("lasa:GShape?every=20", model="lmpromp", engine="cavi")  # doctest: +SKIP
 """
 
 from lmpromp_ppl import _config  # noqa: F401  (float64, before anything else)
+from lmpromp_ppl import data
+from lmpromp_ppl.api import ENGINES, MODELS, fit
+from lmpromp_ppl.models.hyper import PROPER, THESIS, Hyperparameters, preset
+from lmpromp_ppl.results import FitResult, load
 
 __version__ = "0.1.0"
 
-__all__ = ["__version__"]
+__all__ = [
+    "__version__",
+    "data",
+    "fit",
+    "load",
+    "FitResult",
+    "Hyperparameters",
+    "THESIS",
+    "PROPER",
+    "preset",
+    "MODELS",
+    "ENGINES",
+]

@@ -55,9 +55,9 @@ def main(argv: list[str] | None = None) -> int:
         print("lmpromp: aborted", file=sys.stderr)
         return 1
     except Exception as exc:  # click usage errors
-        import click
-
-        if isinstance(exc, click.ClickException):
+        # recent typer vendors its own click (typer._click), so match the
+        # class by name rather than isinstance(exc, click.ClickException)
+        if any(cls.__name__ == "ClickException" for cls in type(exc).__mro__):
             msg = exc.format_message().replace("\n", " ")
             print(f"lmpromp: error: {msg}", file=sys.stderr)
             return 2

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import shutil
 from pathlib import Path
 
 from lmpromp_ppl.errors import LmprompError
@@ -11,17 +10,17 @@ __all__ = ["prepare_out_dir", "prepare_out_file"]
 
 
 def prepare_out_dir(out: Path, force: bool) -> Path:
-    """Create ``out``; refuse an existing non-empty target unless ``force``."""
+    """Create ``out``; refuse an existing non-empty directory unless ``force``.
+
+    With ``force`` the directory is kept and only the files the command writes
+    are replaced: nothing else in it is deleted.
+    """
     out = Path(out)
     if out.exists():
-        if out.is_file():
-            if not force:
-                raise LmprompError(f"output {out} exists and is a file; pass --force to replace it")
-            out.unlink()
-        elif any(out.iterdir()):
-            if not force:
-                raise LmprompError(f"output directory {out} exists and is not empty; pass --force to overwrite")
-            shutil.rmtree(out)
+        if not out.is_dir():
+            raise LmprompError(f"output {out} exists and is not a directory")
+        if any(out.iterdir()) and not force:
+            raise LmprompError(f"output directory {out} exists and is not empty; pass --force to overwrite")
     out.mkdir(parents=True, exist_ok=True)
     return out
 

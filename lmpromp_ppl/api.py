@@ -1,0 +1,184 @@
+"""``lmpromp_ppl.fit``: one entry point for every model and engine.
+
+The data are standardised per DoF (the scaling is stored with the result),
+turned into :class:`~lmpromp_ppl.data.ModelData` with ``num_basis`` basis
+functions per DoF, and handed to the engine.  Engines and models are named as
+in docs/cli.md.
+"""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+
+from lmpromp_ppl.data.core import Demonstrations, model_data, standardize
+from lmpromp_ppl.errors import LmprompError
+from lmpromp_ppl.models.hyper import Hyperparameters, preset
+from lmpromp_ppl.results import FitResult
+
+__all__ = ["MODELS", "ENGINES", "fit", "prepare"]
+
+MODELS = ("promp", "lmpromp", "mixture")
+ENGINES = ("cavi", "svi_meanfield", "svi_autonormal", "svi_lowrank", "nuts")
+
+#: Options each engine accepts through ``fit(..., **options)``.
+ENGINE_OPTIONS = {
+    "cavi": {"tol", "max_iter", "num_restarts", "family"},
+    "nuts": {"num_chains", "num_warmup", "num_samples", "target_accept", "max_tree_depth", "collapsed", "dense_mass"},
+    "svi": {"num_steps", "learning_rate", "num_particles", "rank", "stop_tol", "window"},
+}
+
+
+def prepare(data: Demonstrations | str, num_basis: int, *, standardise: bool = True):
+    """Load (if a dataset string), standardise and build model inputs."""
+    if isinstance(data, str):
+        from lmpromp_ppl.data import load_dataset
+
+        spec, data = data, load_dataset(data)
+    else:
+        spec = data.name
+    if not isinstance(data, Demonstrations):
+        raise LmprompError(f"data must be Demonstrations or a dataset string, got {type(data).__name__}")
+    if num_basis < 2:
+        raise LmprompError(f"num_basis must be at least 2, got {num_basis}")
+    if standardise:
+        scaled, scaling = standardize(data)
+    else:
+        from lmpromp_ppl.data.core import Scaling
+
+        scaled, scaling = data, Scaling.identity(data.num_dofs)
+    return spec, data, scaled, scaling, model_data(scaled, num_basis)
+
+
+def fit(
+    data: Demonstrations | str,
+    model: str = "lmpromp",
+    engine: str = "cavi",
+    hyper: Hyperparameters | None = None,
+    *,
+    num_basis: int = 10,
+    seed: int = 0,
+    standardise: bool = True,
+    progress: bool = False,
+    **options,
+) -> FitResult:
+    """Fit ``model`` to demonstrations with ``engine``.
+
+    Parameters
+    ----------
+    data : Demonstrations or a dataset string (``"lasa:GShape"``, ``"gunpoint"``, a file path)
+    model : ``"promp"``, ``"lmpromp"`` or ``"mixture"``
+    engine : ``"cavi"``, ``"nuts"``, ``"svi_meanfield"``, ``"svi_autonormal"`` or ``"svi_lowrank"``
+    hyper : hyperparameters; default: the thesis defaults for CAVI, the
+        ``proper`` preset for NUTS and SVI (near-improper Gamma priors cannot be sampled)
+    num_basis : basis functions per DoF (J)
+    seed : seeds every random choice of the engine
+    options : passed to the engine (e.g. ``tol``, ``max_iter``, ``num_restarts`` for
+        CAVI; ``num_chains``, ``num_warmup``, ``num_samples`` for NUTS; ``num_steps``,
+        ``learning_rate`` for SVI)
+    """
+    if model not in MODELS:
+        raise LmprompError(f"unknown model {model!r}; choose from {', '.join(MODELS)}")
+    if engine not in ENGINES:
+        raise LmprompError(f"unknown engine {engine!r}; choose from {', '.join(ENGINES)}")
+    if engine == "cavi" and model == "promp":
+        raise LmprompError("CAVI is offered for the lmpromp and mixture models, not for promp")
+    allowed = ENGINE_OPTIONS[engine.split("_")[0]]
+    unknown = sorted(set(options) - allowed)
+    if unknown:
+        raise LmprompError(f"engine {engine} does not take option(s) {', '.join(unknown)}; it takes {', '.join(sorted(allowed))}")
+    if hyper is None:
+        hyper = preset("thesis" if engine == "cavi" else "proper")
+    spec, raw, scaled, scaling, mdata = prepare(data, num_basis, standardise=standardise)
+    hyper.validate_for(mdata.num_weights, mdata.num_demos)
+    if model == "mixture" and mdata.num_demos < hyper.num_components:
+        raise LmprompError(
+            f"fewer demonstrations (L={mdata.num_demos}) than mixture components (K={hyper.num_components})"
+        )
+    common = dict(
+        model=model,
+        engine=engine,
+        hyper=hyper,
+        num_basis=num_basis,
+        num_dofs=raw.num_dofs,
+        scaling=scaling,
+        dataset=spec,
+        dof_names=raw.dof_names,
+    )
+    key = jax.random.key(seed)
+    if engine == "cavi":
+        return _fit_cavi(mdata, key, progress, common, options)
+    if engine == "nuts":
+        return _fit_nuts(mdata, key, progress, common, options)
+    return _fit_svi(mdata, key, progress, common, options)
+
+
+def _fit_cavi(mdata, key, progress, common, options) -> FitResult:
+    from lmpromp_ppl.inference import cavi
+
+    fit_fn = cavi.fit_cavi_mixture if common["model"] == "mixture" else cavi.fit_cavi
+    res = fit_fn(mdata, common["hyper"], key, progress=progress, **options)
+    summary = {
+        "elbo": float(res.elbo),
+        "elbo_trace": np.asarray(res.elbo_trace).tolist(),
+        "iterations": int(res.iterations),
+        "converged": bool(res.converged),
+        "seconds": float(res.seconds),
+        "compile_seconds": float(res.compile_seconds),
+        "active_latent_dims": cavi.active_latent_dims(res.state),
+    }
+    if hasattr(cavi, "active_components") and common["model"] == "mixture":
+        summary["active_components"] = cavi.active_components(res.state)
+    state = res.state
+    return FitResult(
+        **common,
+        sampler=lambda k, n: cavi.sample_q(k, state, n),
+        point={k: np.asarray(v) for k, v in cavi.point_estimate(state).items()},
+        optimization={"elbo": np.asarray(res.elbo_trace)},
+        summary=summary,
+        state=state,
+    )
+
+
+def _fit_nuts(mdata, key, progress, common, options) -> FitResult:
+    from lmpromp_ppl.inference import nuts
+
+    res = nuts.run_nuts(common["model"], mdata, common["hyper"], key, progress=progress, **options)
+    draws = {k: np.asarray(v) for k, v in res.samples.items()}
+    point = {k: v.mean(axis=(0, 1)) for k, v in draws.items()}
+    summary = {
+        "seconds": float(res.seconds),
+        "compile_seconds": float(res.compile_seconds),
+        "divergences": int(np.sum(np.asarray(res.sample_stats["diverging"]))),
+    }
+    return FitResult(
+        **common,
+        draws=draws,
+        point=point,
+        sample_stats={k: np.asarray(v) for k, v in res.sample_stats.items()},
+        summary=summary,
+    )
+
+
+def _fit_svi(mdata, key, progress, common, options) -> FitResult:
+    from lmpromp_ppl.inference import svi
+
+    guide = common["engine"].removeprefix("svi_")
+    fit_key, draw_key = jax.random.split(key)
+    res = svi.run_svi(common["model"], mdata, common["hyper"], fit_key, guide=guide, progress=progress, **options)
+    loss = np.asarray(res.loss_trace)
+    draws = {k: np.asarray(v) for k, v in res.sample(draw_key, 1000).items()}
+    summary = {
+        "elbo": float(-np.mean(loss[-max(1, len(loss) // 20):])),
+        "iterations": int(res.num_steps_run),
+        "converged": bool(res.converged),
+        "seconds": float(res.seconds),
+        "compile_seconds": float(res.compile_seconds),
+    }
+    return FitResult(
+        **common,
+        draws={k: v[None] for k, v in draws.items()},
+        point={k: v.mean(axis=0) for k, v in draws.items()},
+        optimization={"loss": loss},
+        summary=summary,
+    )

@@ -1,0 +1,259 @@
+"""One result layout for every engine (docs/cli.md, "Files written").
+
+A :class:`FitResult` holds what an engine produced on one model and dataset.
+:meth:`FitResult.to_datatree` turns it into an ArviZ-style
+:class:`xarray.DataTree` with groups
+
+* ``posterior``: draws with dims (``chain``, ``draw``, ...) and the site names
+  and dims of :data:`SITE_DIMS` (VI engines: draws from q, one chain);
+* ``derived``: identifiable quantities (``gram_eig``, ``pred_mean``, ``pred_sd``);
+* ``sample_stats``: NUTS statistics (divergences, tree depth, step size, ...);
+* ``optimization``: ELBO or loss traces with dim ``iteration``;
+* ``point_estimate``: posterior means used for plug-in prediction.
+
+:meth:`FitResult.save` writes ``posterior.nc`` (netCDF through h5netcdf) and
+``summary.json``; :func:`load` reads them back.  Both carry
+:data:`FORMAT_VERSION`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import xarray as xr
+
+from lmpromp_ppl.data.core import Scaling
+from lmpromp_ppl.diagnostics.quantities import derived_quantities
+from lmpromp_ppl.errors import LmprompError
+from lmpromp_ppl.models.hyper import Hyperparameters
+
+__all__ = ["FORMAT_VERSION", "SITE_DIMS", "FitResult", "load", "site_dims", "to_json_value"]
+
+FORMAT_VERSION = 1
+
+#: Dims of each site after the sample dims; ``component`` only in the mixture.
+SITE_DIMS: dict[str, tuple[str, ...]] = {
+    "b": ("component", "weight"),
+    "M": ("component", "weight", "latent"),
+    "h": ("demo", "component", "latent"),
+    "w": ("demo", "weight"),
+    "alpha": ("component",),
+    "lam": ("component", "latent"),
+    "beta": (),
+    "pi": ("component",),
+    "z": ("demo",),
+    "mu_w": ("weight",),
+    "Sigma_w": ("weight", "weight2"),
+    "gram_eig": ("component", "latent"),
+    "pred_mean": ("phase", "dof"),
+    "pred_sd": ("phase", "dof"),
+}
+
+
+def site_dims(name: str, ndim: int) -> tuple[str, ...]:
+    """Dims of a site with ``ndim`` non-sample axes (drops ``component`` when absent)."""
+    dims = SITE_DIMS.get(name)
+    if dims is None:
+        return tuple(f"{name}_dim_{i}" for i in range(ndim))
+    if len(dims) == ndim:
+        return dims
+    dims = tuple(d for d in dims if d != "component")
+    if len(dims) != ndim:
+        raise ValueError(f"site {name!r} has {ndim} axes, expected {SITE_DIMS[name]}")
+    return dims
+
+
+def to_json_value(x):
+    """JSON-safe value: numpy scalars and arrays to Python, NaN/inf to ``None``."""
+    if isinstance(x, dict):
+        return {str(k): to_json_value(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [to_json_value(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return to_json_value(x.tolist())
+    if isinstance(x, (np.bool_, bool)):
+        return bool(x)
+    if isinstance(x, (np.integer,)):
+        return int(x)
+    if isinstance(x, (float, np.floating)):
+        x = float(x)
+        return x if math.isfinite(x) else None
+    return x
+
+
+def _dataset(values: dict, sample_dims: tuple[str, ...]) -> xr.Dataset:
+    data_vars = {}
+    for name, value in values.items():
+        arr = np.asarray(value)
+        dims = sample_dims + site_dims(name, arr.ndim - len(sample_dims))
+        data_vars[name] = (dims, arr)
+    return xr.Dataset(data_vars)
+
+
+@dataclass
+class FitResult:
+    """What an engine produced on one model and dataset.
+
+    ``draws`` maps site names to arrays with leading (chain, draw) dims; VI
+    engines instead give a ``sampler(key, num_draws) -> dict`` of draws from q
+    (leading draw axis) and ``draws`` is filled on demand.
+    """
+
+    model: str
+    engine: str
+    hyper: Hyperparameters
+    num_basis: int
+    num_dofs: int
+    scaling: Scaling
+    dataset: str = ""
+    dof_names: tuple[str, ...] = ()
+    width: float = 2.0
+    draws: dict | None = None
+    sampler: Callable | None = None
+    point: dict = field(default_factory=dict)
+    sample_stats: dict = field(default_factory=dict)
+    optimization: dict = field(default_factory=dict)
+    summary: dict = field(default_factory=dict)
+    state: object = None
+
+    # ---------------------------------------------------------------- draws
+    def posterior_draws(self, num_draws: int = 1000, key=None) -> dict:
+        """Draws with (chain, draw) leading dims; VI results sample q once and cache."""
+        if self.draws is not None:
+            return self.draws
+        if self.sampler is None:
+            raise LmprompError("this result holds neither draws nor a sampler")
+        import jax
+
+        key = jax.random.key(0) if key is None else key
+        raw = self.sampler(key, num_draws)
+        self.draws = {k: np.asarray(v)[None] for k, v in raw.items()}
+        return self.draws
+
+    @property
+    def elbo(self) -> float | None:
+        return self.summary.get("elbo")
+
+    def to_datatree(self, num_draws: int = 1000, key=None) -> xr.DataTree:
+        """The result in the common DataTree layout (module docstring)."""
+        draws = self.posterior_draws(num_draws, key)
+        groups = {"posterior": _dataset(draws, ("chain", "draw"))}
+        derived = derived_quantities(
+            self.model,
+            draws,
+            num_dofs=self.num_dofs,
+            num_basis=self.num_basis,
+            gamma=self.hyper.gamma,
+            scaling=self.scaling,
+            width=self.width,
+        )
+        phase = derived.pop("phase")
+        ds = _dataset(derived, ("chain", "draw"))
+        groups["derived"] = ds.assign_coords(phase=phase, dof=list(self.dof_names or range(self.num_dofs)))
+        if self.sample_stats:
+            groups["sample_stats"] = _dataset(self.sample_stats, ("chain", "draw"))
+        if self.optimization:
+            groups["optimization"] = xr.Dataset(
+                {k: (("iteration",), np.asarray(v, dtype=float)) for k, v in self.optimization.items()}
+            )
+        if self.point:
+            groups["point_estimate"] = _dataset(self.point, ())
+        tree = xr.DataTree.from_dict(groups)
+        tree.attrs.update(self._attrs())
+        return tree
+
+    def _attrs(self) -> dict:
+        return {
+            "lmpromp_format_version": FORMAT_VERSION,
+            "model": self.model,
+            "engine": self.engine,
+            "dataset": self.dataset,
+            "hyperparameters": json.dumps(self.hyper.to_dict()),
+            "scaling": json.dumps(self.scaling.to_dict()),
+            "num_basis": self.num_basis,
+            "num_dofs": self.num_dofs,
+            "width": self.width,
+            "dof_names": json.dumps(list(self.dof_names)),
+        }
+
+    def summary_dict(self) -> dict:
+        """The ``summary.json`` content (docs/cli.md)."""
+        out = {
+            "format_version": FORMAT_VERSION,
+            "model": self.model,
+            "engine": self.engine,
+            "dataset": self.dataset,
+            "hyperparameters": self.hyper.to_dict(),
+            "num_basis": self.num_basis,
+            "scaling": self.scaling.to_dict(),
+            "elbo": None,
+            "elbo_trace": [],
+            "iterations": None,
+            "converged": None,
+            "seconds": None,
+            "compile_seconds": None,
+            "active_latent_dims": None,
+        }
+        out.update(self.summary)
+        return to_json_value(out)
+
+    def save(self, out_dir: str | Path, *, force: bool = False, num_draws: int = 1000, key=None) -> Path:
+        """Write ``posterior.nc`` and ``summary.json`` into ``out_dir``."""
+        out_dir = Path(out_dir)
+        targets = [out_dir / "posterior.nc", out_dir / "summary.json"]
+        existing = [str(t) for t in targets if t.exists()]
+        if existing and not force:
+            raise LmprompError(f"refusing to overwrite {', '.join(existing)}; pass force=True (--force)")
+        out_dir.mkdir(parents=True, exist_ok=True)
+        tree = self.to_datatree(num_draws, key)
+        tmp = out_dir / "posterior.nc.tmp"
+        tree.to_netcdf(tmp, engine="h5netcdf")
+        tmp.replace(targets[0])
+        targets[1].write_text(json.dumps(self.summary_dict(), indent=2) + "\n")
+        return out_dir
+
+
+def load(path: str | Path) -> FitResult:
+    """Load a fit written by :meth:`FitResult.save` (or ``lmpromp fit --out``)."""
+    path = Path(path)
+    nc, js = path / "posterior.nc", path / "summary.json"
+    for f in (nc, js):
+        if not f.is_file():
+            raise LmprompError(f"{path} is not a saved fit: {f.name} is missing")
+    try:
+        summary = json.loads(js.read_text())
+        tree = xr.open_datatree(nc, engine="h5netcdf").load()
+    except (OSError, ValueError) as exc:
+        raise LmprompError(f"cannot read the fit in {path}: {exc}") from None
+    version = summary.get("format_version")
+    if version != FORMAT_VERSION or tree.attrs.get("lmpromp_format_version") != FORMAT_VERSION:
+        raise LmprompError(f"{path} has format version {version}; this lmpromp-ppl reads {FORMAT_VERSION}")
+    attrs = tree.attrs
+
+    def group(name):
+        if name not in tree.children:
+            return {}
+        return {k: np.asarray(v.values) for k, v in tree[name].to_dataset().data_vars.items()}
+
+    result = FitResult(
+        model=attrs["model"],
+        engine=attrs["engine"],
+        hyper=Hyperparameters.from_dict(json.loads(attrs["hyperparameters"])),
+        num_basis=int(attrs["num_basis"]),
+        num_dofs=int(attrs["num_dofs"]),
+        scaling=Scaling.from_dict(json.loads(attrs["scaling"])),
+        dataset=attrs.get("dataset", ""),
+        dof_names=tuple(json.loads(attrs["dof_names"])),
+        width=float(attrs["width"]),
+        draws=group("posterior"),
+        point=group("point_estimate"),
+        sample_stats=group("sample_stats"),
+        optimization=group("optimization"),
+        summary={k: v for k, v in summary.items() if k not in ("format_version",)},
+    )
+    return result
