@@ -11,14 +11,27 @@ in lmpromp-ppl) we choose
 
 * ``beta = 100``: observation noise s.d. 0.1 of the DoF's spread, so the basis
   fit is trusted but a demonstration's jitter is not (Sec. 5.3 studies beta);
-* ``c0 = d0 = 1``: the column precision :math:`\lambda_v` has prior mean 1,
-  the scale of weights of standardised data, and c0 = 1 is the sparsity-favouring
-  (Laplace-like) choice of Sec. 4.1; the prior is broad (s.d. 1) so ARD can
-  still switch a column off.
+* ``c0 = 1, d0 = 1e-3``: c0 = 1 is the sparsity-favouring (Laplace-like)
+  choice of Sec. 4.1; the Exponential prior on :math:`\lambda_v` with mean
+  1000 adds a single pseudo-observation and is nearly flat over the precisions
+  that standardised data support (an active column of unit scale has
+  :math:`\lambda_v \approx 1`).  The rate must be small for ARD to work:
+  the posterior mean obeys :math:`\bar\lambda_v \le (c_0 + d/2)/d_0`, so a
+  switched-off column keeps :math:`1/\bar\lambda_v \ge d_0/(c_0 + d/2)`;
+  with ``d0 = 1`` no column could ever fall below the 1e-3 activity threshold
+  of docs/cli.md, with ``d0 = 1e-3`` it can.
 
 :data:`PROPER` is for sampling-based engines and simulation: Gamma(1e-5, 1e-5)
 is nearly improper (its mass sits at 0 and at huge values), so NUTS cannot
 explore it and prior simulation produces absurd precisions.
+
+:data:`SIMULATION` is for prior and prior-predictive simulation
+(:mod:`lmpromp_ppl.models.prior`).  Even PROPER's Gamma(1e-2, 1e-2) puts most
+of its mass on precisions below 1e-20, so simulated weights would have standard
+deviations beyond 1e10.  SIMULATION uses ``a0 = 3, b0 = 0.2`` (alpha has prior
+mean 15, E[1/alpha] = 0.1: residual s.d. about 0.3 of a standardised DoF) and
+``c0 = 3, d0 = 2`` (E[1/lam_v] = 1: each column of M has unit scale); shapes
+above 2 give the prior predictive finite variances.
 """
 
 from __future__ import annotations
@@ -28,7 +41,7 @@ from dataclasses import dataclass
 
 from lmpromp_ppl.errors import LmprompError
 
-__all__ = ["Hyperparameters", "THESIS", "PROPER", "preset"]
+__all__ = ["Hyperparameters", "THESIS", "PROPER", "SIMULATION", "preset"]
 
 
 @dataclass(frozen=True)
@@ -47,6 +60,9 @@ class Hyperparameters:
     kappa0 : Dirichlet concentration of the mixture weights ``pi``
     learn_beta : give ``beta`` a Gamma(beta_a0, beta_b0) prior and infer it
     beta_a0, beta_b0 : Gamma shape and rate of ``beta`` when learned
+    promp_scale : scale of the HalfNormal prior on the per-weight standard
+        deviations of the ProMP baseline (:func:`lmpromp_ppl.models.promp.promp_model`)
+    lkj_concentration : LKJ concentration of the ProMP baseline's weight correlation
     """
 
     beta: float = 100.0
@@ -55,16 +71,19 @@ class Hyperparameters:
     a0: float = 1e-5
     b0: float = 1e-5
     c0: float = 1.0
-    d0: float = 1.0
+    d0: float = 1e-3
     latent_dim: int = 3
     num_components: int = 1
     kappa0: float = 1.0
     learn_beta: bool = False
     beta_a0: float = 1.0
     beta_b0: float = 0.01
+    promp_scale: float = 1.0
+    lkj_concentration: float = 2.0
 
     def __post_init__(self):
-        for name in ("beta", "lambda0", "gamma", "a0", "b0", "c0", "d0", "kappa0", "beta_a0", "beta_b0"):
+        for name in ("beta", "lambda0", "gamma", "a0", "b0", "c0", "d0", "kappa0", "beta_a0", "beta_b0",
+                     "promp_scale", "lkj_concentration"):
             value = getattr(self, name)
             if not isinstance(value, (int, float)) or isinstance(value, bool):
                 raise LmprompError(f"hyperparameter {name} must be a number, got {value!r}")
@@ -107,11 +126,12 @@ class Hyperparameters:
 
 THESIS = Hyperparameters()
 PROPER = Hyperparameters(a0=1e-2, b0=1e-2, c0=2.0, d0=2.0)
+SIMULATION = Hyperparameters(a0=3.0, b0=0.2, c0=3.0, d0=2.0)
 
 
 def preset(name: str, **changes) -> Hyperparameters:
-    """Named preset, ``"thesis"`` (default) or ``"proper"``, with changes."""
-    presets = {"thesis": THESIS, "default": THESIS, "proper": PROPER}
+    """Named preset, ``"thesis"`` (default), ``"proper"`` or ``"simulation"``, with changes."""
+    presets = {"thesis": THESIS, "default": THESIS, "proper": PROPER, "simulation": SIMULATION}
     if name not in presets:
         raise LmprompError(f"unknown hyperparameter preset {name!r}; choose from {sorted(presets)}")
     return presets[name].replace(**changes)
