@@ -1,0 +1,111 @@
+"""``lmpromp predict``: condition a saved fit on a (partial) demonstration."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import typer
+
+from lmpromp_ppl.cli import app
+from lmpromp_ppl.cli._common import prepare_out_dir
+from lmpromp_ppl.errors import DataError
+
+__all__ = ["predict_command", "read_observation"]
+
+
+def read_observation(path: Path, num_dofs: int) -> tuple[np.ndarray, np.ndarray]:
+    """Read one demonstration ``t`` (T,), ``y`` (T, D) from ``.npz`` or ``.csv``.
+
+    NaN in ``y`` marks an unobserved entry.  ``.npz`` is read without pickle;
+    ``.csv`` has a header with ``t`` then one column per DoF.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"cannot read observation file {path}: no such file")
+    if path.suffix == ".npz":
+        try:
+            with np.load(path, allow_pickle=False) as f:
+                if "t" not in f or "y" not in f:
+                    raise DataError(f"{path}: needs arrays 't' (T,) and 'y' (T, D), found {sorted(f.files)}")
+                t, y = np.asarray(f["t"], dtype=float), np.asarray(f["y"], dtype=float)
+        except (OSError, ValueError) as exc:
+            raise DataError(f"cannot read observation file {path}: {exc}") from None
+    elif path.suffix == ".csv":
+        try:
+            table = np.genfromtxt(path, delimiter=",", names=True, dtype=float)
+        except (OSError, ValueError) as exc:
+            raise DataError(f"cannot read observation file {path}: {exc}") from None
+        names = table.dtype.names or ()
+        if not names or names[0] != "t":
+            raise DataError(f"{path}: the first column must be 't', found {list(names)}")
+        table = np.atleast_1d(table)
+        t = np.asarray(table["t"], dtype=float)
+        y = np.stack([np.asarray(table[n], dtype=float) for n in names[1:]], axis=-1) if len(names) > 1 else np.empty((t.size, 0))
+    else:
+        raise DataError(f"observation file {path} must end in .npz or .csv")
+    if y.ndim == 1 and num_dofs == 1:
+        y = y[:, None]
+    if t.ndim != 1 or y.ndim != 2 or y.shape[0] != t.shape[0]:
+        raise DataError(f"{path}: 't' must be (T,) and 'y' (T, D), got {t.shape} and {y.shape}")
+    if y.shape[1] != num_dofs:
+        raise DataError(f"{path}: the fit has {num_dofs} DoF but 'y' has {y.shape[1]} columns")
+    if not np.all(np.isfinite(t)):
+        raise DataError(f"{path}: 't' contains NaN or inf")
+    return t, y
+
+
+@app.command("predict")
+def predict_command(
+    fit_dir: Path = typer.Argument(..., help="Directory written by `lmpromp fit`."),
+    observe: Path = typer.Option(..., "--observe", help="Observed (partial) demonstration: .npz with t (T,), y (T, D) or .csv; NaN = unobserved."),
+    out: Path = typer.Option(..., "--out", help="Output directory (prediction.npz, prediction.png)."),
+    duration: Optional[float] = typer.Option(None, help="Map times to phases as t / duration (default: t are phases)."),
+    noise_sd: Optional[float] = typer.Option(None, "--noise-sd", help="Observation noise s.d. in data units (default: beta^-1/2 of the fit)."),
+    bayesian: bool = typer.Option(False, "--bayesian", help="Average over posterior draws instead of the posterior mean."),
+    exact: bool = typer.Option(False, "--exact", help="Exact p(w|o) instead of thesis eqs. 4.6-4.7."),
+    samples: int = typer.Option(20, help="Sampled trajectories to store."),
+    seed: int = typer.Option(0, help="Seed for the sampled trajectories."),
+    force: bool = typer.Option(False, "--force", help="Overwrite existing output files."),
+    quiet: bool = typer.Option(False, "--quiet", help="No output but errors."),
+) -> None:
+    """Predict the whole movement from a partial observation, with a saved fit."""
+    import jax
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from lmpromp_ppl.predict.from_fit import predict_from_fit
+    from lmpromp_ppl.results import load
+
+    result = load(fit_dir)
+    t, y = read_observation(observe, result.num_dofs)
+    if duration is not None:
+        if not duration > 0:
+            raise DataError(f"--duration must be positive, got {duration}")
+        phase = t / duration
+    else:
+        phase = t
+    if np.any(phase < 0) or np.any(phase > 1):
+        raise DataError("observation phases must lie in [0, 1]; pass --duration to map times to phases")
+    pred = predict_from_fit(result, phase, y, noise_sd=noise_sd, bayesian=bayesian, exact=exact,
+                            num_samples=samples, key=jax.random.key(seed))
+    out_dir = prepare_out_dir(out, force)
+    np.savez(out_dir / "prediction.npz", phase=pred.phase, mean=pred.mean, sd=pred.sd, samples=pred.samples)
+    fig = Figure(figsize=(4.5 * result.num_dofs, 3.2), layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(1, result.num_dofs, squeeze=False)[0]
+    for k, ax in enumerate(axes):
+        for s in pred.samples[:, :, k]:
+            ax.plot(pred.phase, s, color="tab:blue", alpha=0.15, lw=0.8)
+        ax.fill_between(pred.phase, pred.mean[:, k] - 2 * pred.sd[:, k], pred.mean[:, k] + 2 * pred.sd[:, k],
+                        color="tab:blue", alpha=0.2, label="mean ± 2 sd")
+        ax.plot(pred.phase, pred.mean[:, k], color="tab:blue", lw=2, label="predicted mean")
+        ok = np.isfinite(y[:, k])
+        ax.plot(phase[ok], y[ok, k], "o", color="black", ms=3, label="observed")
+        ax.set_xlabel("phase")
+        ax.set_title(result.dof_names[k] if result.dof_names else f"DoF {k}")
+    axes[0].legend(fontsize=8)
+    fig.savefig(out_dir / "prediction.png", dpi=110)
+    if not quiet:
+        typer.echo(f"predicted {result.model}/{result.engine} from {int(np.isfinite(y).sum())} observed values; wrote {out_dir}")
