@@ -1,0 +1,156 @@
+r"""The Latent-Manifold ProMP for a single movement type (thesis Sec. 4.1, eq. 4.1).
+
+Generative model, for demonstrations :math:`i = 1, \dots, L` (precisions
+throughout, Gamma is shape/rate):
+
+.. math::
+
+    \mathbf b &\sim \mathcal N(\mathbf 0, \lambda_0^{-1} \mathbf I_d), \qquad
+    \lambda_v \sim \Gamma(c_0, d_0), \qquad
+    \mathbf m_v \sim \mathcal N(\mathbf 0, \lambda_v^{-1} \mathbf I_d), \qquad
+    \alpha \sim \Gamma(a_0, b_0), \\
+    \mathbf h_i &\sim \mathcal N(\mathbf 0, \gamma^{-1} \mathbf I_V), \qquad
+    \mathbf w_i \sim \mathcal N(\mathbf b + \mathbf M \mathbf h_i, \alpha^{-1} \mathbf I_d)
+    \quad \text{(eq. 4.1)}, \qquad
+    \mathbf y_i \sim \mathcal N(\Psi_i \mathbf w_i, \beta^{-1} \mathbf I_S),
+
+with :math:`\beta \sim \Gamma(\beta_{a0}, \beta_{b0})` when
+``hyper.learn_beta`` and the fixed ``hyper.beta`` otherwise (the thesis keeps
+:math:`\beta` fixed, Sec. 4.1).
+
+Sites and shapes (``../shared/CONTRACTS.md``): ``b`` (d,), ``lam`` (V,), ``M``
+(d, V), ``alpha`` (), ``beta`` () when learned, ``h`` (L, V), ``w`` (L, d),
+``y`` (L, S).  Entries with ``mask == 0`` (padding or missing values) do not
+contribute to the density.
+
+This module also holds the data checks shared by every model of
+:mod:`lmpromp_ppl.models`.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+import jax
+import jax.numpy as jnp
+import numpyro
+import numpyro.distributions as dist
+from jax import Array
+
+from lmpromp_ppl.data.core import ModelData
+from lmpromp_ppl.errors import DataError
+from lmpromp_ppl.models.hyper import Hyperparameters
+
+__all__ = ["lmpromp_model", "PreparedData", "prepare_data", "observation_precision", "observe_y"]
+
+
+class PreparedData(NamedTuple):
+    """Model inputs with masked entries neutralised.
+
+    Attributes
+    ----------
+    psi : (L, S, d) design matrices with the rows of masked entries set to 0
+    y : (L, S) observations with masked entries set to 0
+    observed : (L, S) boolean, True where an entry is observed
+    num_missing : (L,) number of masked entries per demonstration
+    """
+
+    psi: Array
+    y: Array
+    observed: Array
+    num_missing: Array
+
+
+def _is_concrete(x) -> bool:
+    return not isinstance(x, jax.core.Tracer)
+
+
+def prepare_data(data: ModelData) -> PreparedData:
+    """Check the shapes (and, for concrete arrays, the values) of ``data``.
+
+    Masked entries (``mask == 0``) get ``y = 0`` and a zero design-matrix row,
+    whatever they held (padding, NaN for a missing value), so that they cannot
+    leak into a density or its gradient.
+
+    Raises
+    ------
+    DataError
+        if the shapes disagree, the mask is not 0/1, or an observed entry is
+        not finite.
+    """
+    if not isinstance(data, tuple) or len(data) != 3:
+        raise DataError("model data must be a ModelData (psi, y, mask)")
+    psi, y, mask = (jnp.asarray(a) for a in data)
+    if psi.ndim != 3:
+        raise DataError(f"psi must have shape (L, S, d), got {psi.shape}")
+    if y.shape != psi.shape[:2] or mask.shape != psi.shape[:2]:
+        raise DataError(
+            f"y {y.shape} and mask {mask.shape} must have shape (L, S) = {psi.shape[:2]}"
+        )
+    if all(_is_concrete(a) for a in (psi, y, mask)):
+        m = np.asarray(mask)
+        if not np.all((m == 0) | (m == 1)):
+            raise DataError("mask must contain only 0 and 1")
+        if not np.all(np.isfinite(np.asarray(y)[m == 1])):
+            raise DataError("observed entries of y contain NaN or inf")
+        if not np.all(np.isfinite(np.asarray(psi)[m == 1])):
+            raise DataError("design-matrix rows of observed entries contain NaN or inf")
+    observed = mask > 0
+    psi = jnp.where(observed[..., None], psi, 0.0)
+    y = jnp.where(observed, y, 0.0)
+    num_missing = jnp.sum(~observed, axis=-1)
+    return PreparedData(psi, y, observed, num_missing)
+
+
+def observation_precision(hyper: Hyperparameters) -> Array | float:
+    """``beta``: a ``Gamma(beta_a0, beta_b0)`` site when learned, else the fixed value."""
+    if hyper.learn_beta:
+        return numpyro.sample("beta", dist.Gamma(hyper.beta_a0, hyper.beta_b0))
+    return hyper.beta
+
+
+def observe_y(prepared: PreparedData, w: Array, beta, observed: bool) -> Array:
+    r"""Site ``y``: :math:`\mathcal N(\Psi_i \mathbf w_i, \beta^{-1} \mathbf I)` over observed entries.
+
+    Must be called inside the ``demo`` plate; ``w`` is (L, d).
+    """
+    loc = jnp.einsum("lsd,ld->ls", prepared.psi, w)
+    noise = dist.Normal(loc, jnp.sqrt(1.0 / beta)).mask(prepared.observed).to_event(1)
+    return numpyro.sample("y", noise, obs=prepared.y if observed else None)
+
+
+def lmpromp_model(data: ModelData, hyper: Hyperparameters, observed: bool = True) -> None:
+    r"""NumPyro model of the LMProMP, eq. 4.1 with the priors of Sec. 4.1.
+
+    Parameters
+    ----------
+    data : padded model inputs ``(psi (L, S, d), y (L, S), mask (L, S))``
+    hyper : hyperparameters (precisions; Gamma shape/rate)
+    observed : condition on ``data.y`` (True) or sample ``y`` (prior predictive)
+    """
+    prepared = prepare_data(data)
+    num_demos, _, num_weights = prepared.psi.shape
+    hyper.validate_for(num_weights)
+    num_latent = hyper.latent_dim
+
+    b = numpyro.sample(
+        "b", dist.Normal(0.0, hyper.lambda0**-0.5).expand([num_weights]).to_event(1)
+    )
+    lam = numpyro.sample("lam", dist.Gamma(hyper.c0, hyper.d0).expand([num_latent]).to_event(1))
+    # column v of M has precision lam[v]
+    M = numpyro.sample(
+        "M",
+        dist.Normal(0.0, jnp.broadcast_to(lam**-0.5, (num_weights, num_latent))).to_event(2),
+    )
+    alpha = numpyro.sample("alpha", dist.Gamma(hyper.a0, hyper.b0))
+    beta = observation_precision(hyper)
+
+    with numpyro.plate("demo", num_demos):
+        h = numpyro.sample(
+            "h", dist.Normal(0.0, hyper.gamma**-0.5).expand([num_latent]).to_event(1)
+        )
+        w = numpyro.sample(
+            "w", dist.Normal(b + h @ M.T, jnp.sqrt(1.0 / alpha)).to_event(1)
+        )
+        observe_y(prepared, w, beta, observed)
