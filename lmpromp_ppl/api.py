@@ -181,4 +181,5 @@ def _fit_svi(mdata, key, progress, common, options) -> FitResult:
         point={k: v.mean(axis=0) for k, v in draws.items()},
         optimization={"loss": loss},
         summary=summary,
+        state=res,
     )

@@ -1,0 +1,148 @@
+"""PNG figures of the ``lmpromp compare`` report (matplotlib, Agg backend; arviz-plots for densities)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Mapping
+
+import numpy as np
+
+__all__ = ["plot_traces", "plot_marginals", "plot_sd_ratios", "plot_predictive", "plot_latent"]
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg", force=True)
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def plot_traces(optimization: Mapping[str, Mapping[str, np.ndarray]], path: Path) -> Path | None:
+    """ELBO traces (CAVI) and loss traces (SVI), one panel per engine; None when there are none."""
+    traces = {(e, k): np.asarray(v, dtype=float) for e, opt in optimization.items() for k, v in opt.items() if len(v)}
+    if not traces:
+        return None
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, len(traces), figsize=(4.2 * len(traces), 3.2), squeeze=False)
+    for ax, ((engine, name), values) in zip(axes[0], traces.items()):
+        ax.plot(np.arange(1, values.size + 1), values, lw=1)
+        ax.set_title(f"{engine}: {name}")
+        ax.set_xlabel("iteration")
+        if name == "loss" and np.all(values > 0):
+            ax.set_yscale("log")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
+def plot_marginals(quantities: Mapping[str, Mapping[str, np.ndarray]], path: Path,
+                   names=("alpha", "lam", "gram_eig", "b"), max_elements: int = 4) -> Path | None:
+    """Marginal densities of every engine overlaid (``arviz_plots.plot_dist``).
+
+    ``quantities``: engine -> name -> (num_draws, ...) flattened-sample draws.
+    Each engine is subsampled to the same number of draws (arviz-plots
+    overlays models of equal shape); at most ``max_elements`` elements per
+    quantity are shown.
+    """
+    import xarray as xr
+    import arviz_plots
+
+    plt = _pyplot()
+    engines = list(quantities)
+    names = [n for n in names if all(n in quantities[e] for e in engines)]
+    if not names:
+        return None
+    num = min(next(iter(quantities[e].values())).shape[0] for e in engines)
+    trees = {}
+    for e in engines:
+        data = {}
+        for n in names:
+            x = np.asarray(quantities[e][n], dtype=float)[:num].reshape(num, -1)[:, :max_elements]
+            if x.shape[1] == 1:
+                data[n] = (("chain", "draw"), x[None, :, 0])
+            else:
+                data[n] = (("chain", "draw", f"{n}_element"), x[None])
+        trees[e] = xr.DataTree.from_dict({"posterior": xr.Dataset(data)})
+    pc = arviz_plots.plot_dist(
+        trees, var_names=names, backend="matplotlib", kind="kde",
+        visuals={"credible_interval": False, "point_estimate": False, "point_estimate_text": False},
+    )
+    pc.add_legend("model")
+    pc.savefig(path, dpi=80)
+    plt.close("all")
+    return path
+
+
+def plot_sd_ratios(ratios: Mapping[str, Mapping[str, np.ndarray]], path: Path) -> Path | None:
+    """Forest plot of the sd ratios VI / NUTS: median (dot) and range (line) per engine and quantity, log scale."""
+    rows = [(e, q, np.asarray(r, dtype=float)) for e, per in ratios.items() for q, r in per.items()]
+    rows = [(e, q, r[np.isfinite(r)]) for e, q, r in rows]
+    rows = [row for row in rows if row[2].size]
+    if not rows:
+        return None
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(6.5, 0.32 * len(rows) + 1.2))
+    engines = sorted({e for e, _, _ in rows}, key=list(ratios).index)
+    colours = {e: f"C{i}" for i, e in enumerate(engines)}
+    for y, (e, q, r) in enumerate(rows):
+        ax.plot([r.min(), r.max()], [y, y], color=colours[e], lw=1.5)
+        ax.plot([np.median(r)], [y], "o", color=colours[e])
+    ax.axvline(1.0, color="k", lw=0.8, ls="--")
+    ax.set_xscale("log")
+    ax.set_yticks(range(len(rows)), [f"{e}: {q}" for e, q, _ in rows])
+    ax.invert_yaxis()
+    ax.set_xlabel("sd ratio VI / NUTS (1 = same spread; < 1 = VI too narrow)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
+def plot_predictive(bands: Mapping[str, tuple[np.ndarray, np.ndarray]], phase: np.ndarray, demos, path: Path) -> Path:
+    """Predictive mean +- 2 sd of a new demonstration per engine, over the demonstrations, per DoF.
+
+    ``bands``: engine -> (mean (P, D), sd (P, D)) in data units; ``demos`` the
+    raw :class:`~lmpromp_ppl.data.Demonstrations`.
+    """
+    plt = _pyplot()
+    num_dofs = demos.num_dofs
+    fig, axes = plt.subplots(1, num_dofs, figsize=(4.5 * num_dofs, 3.4), squeeze=False)
+    for k, ax in enumerate(axes[0]):
+        for z, y in zip(demos.phases(), demos.positions):
+            ax.plot(z, y[:, k], color="0.6", lw=0.7)
+        for i, (engine, (mean, sd)) in enumerate(bands.items()):
+            ax.plot(phase, mean[:, k], color=f"C{i}", lw=1.5, label=engine)
+            ax.fill_between(phase, mean[:, k] - 2 * sd[:, k], mean[:, k] + 2 * sd[:, k], color=f"C{i}", alpha=0.15)
+        ax.set_title(demos.dof_names[k])
+        ax.set_xlabel("phase")
+    axes[0][0].legend(fontsize="small")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
+def plot_latent(coords: Mapping[str, np.ndarray], labels: np.ndarray | None, path: Path, title: str) -> Path:
+    """Posterior-mean latent coordinates (L, 2) per engine, coloured by label where labels exist."""
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, len(coords), figsize=(3.6 * len(coords), 3.4), squeeze=False)
+    if labels is not None:
+        classes = sorted(set(labels.tolist()))
+        colour = np.array([classes.index(label) for label in labels])
+    for ax, (engine, xy) in zip(axes[0], coords.items()):
+        if labels is None:
+            ax.scatter(xy[:, 0], xy[:, 1], s=14)
+        else:
+            for c, name in enumerate(classes):
+                ax.scatter(xy[colour == c, 0], xy[colour == c, 1], s=14, color=f"C{c}", label=name)
+        ax.set_title(engine)
+    if labels is not None:
+        axes[0][0].legend(fontsize="small")
+    fig.suptitle(title, fontsize="medium")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path

@@ -1,0 +1,124 @@
+"""``lmpromp compare`` end to end on a tiny synthetic problem, and its user errors."""
+
+from __future__ import annotations
+
+import json
+import re
+
+import numpy as np
+import pytest
+
+import lmpromp_ppl
+from lmpromp_ppl.cli import main
+
+DATASET = "synthetic:latent?L=6&D=2&J=3&V=2&T=15&seed=0"
+TINY = ["--model", "lmpromp", "--latent-dim", "2", "--num-basis", "3", "--chains", "2", "--warmup", "200",
+        "--samples", "300", "--seed", "0", "--draws", "600"]
+SIX = {"b", "alpha", "lam", "gram_eig", "pred_mean", "w"}
+FOUR = {"smd_max_abs", "sd_ratio_median", "wasserstein_max", "coverage90"}
+FIGURES = ("traces.png", "marginals.png", "sd_ratios.png", "predictive.png", "latent.png")
+
+
+def _strict_json(text: str) -> dict:
+    def reject(name):
+        raise AssertionError(f"metrics.json holds {name}")
+
+    return json.loads(text, parse_constant=reject)
+
+
+@pytest.fixture(scope="module")
+def report_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("compare") / "report"
+    rc = main(["compare", DATASET, "--engines", "cavi,nuts", "--out", str(out), "--quiet", *TINY])
+    assert rc == 0
+    return out
+
+
+def test_compare_writes_every_file(report_dir):
+    for name in ("report.md", "report.html", "metrics.json", *FIGURES):
+        assert (report_dir / name).is_file(), name
+    for engine in ("cavi", "nuts"):
+        assert (report_dir / engine / "posterior.nc").is_file()
+        fit = lmpromp_ppl.load(report_dir / engine)
+        assert fit.engine == engine and fit.hyper.a0 == lmpromp_ppl.PROPER.a0  # one shared preset
+
+
+def test_metrics_json_follows_the_contract(report_dir):
+    metrics = _strict_json((report_dir / "metrics.json").read_text())
+    assert {"dataset", "model", "hyperparameters", "engines"} <= set(metrics)
+    assert metrics["dataset"] == DATASET and metrics["model"] == "lmpromp"
+    assert metrics["hyperparameters"]["latent_dim"] == 2
+    engines = metrics["engines"]
+    assert set(engines) == {"cavi", "nuts"}
+    for e in engines.values():
+        assert e["seconds"] > 0 and e["compile_seconds"] >= 0
+    nuts = engines["nuts"]
+    assert {"rhat_max", "ess_bulk_min", "ess_tail_min", "divergences"} <= set(nuts)
+    assert nuts["rhat_max"] >= 1.0 - 0.05 and nuts["ess_bulk_min"] > 0 and nuts["divergences"] >= 0
+    cavi = engines["cavi"]
+    assert np.isfinite(cavi["elbo"]) and "psis_khat" in cavi
+    # CAVI's log q is available, so k-hat is a number (mean-field q in ~100 dims: typically large)
+    assert cavi["psis_khat"] is not None and cavi["psis_khat_note"] == ""
+    assert set(cavi["vs_nuts"]) == SIX
+    for q, summary in cavi["vs_nuts"].items():
+        assert set(summary) == FOUR, q
+        assert summary["sd_ratio_median"] > 0 and 0.0 <= summary["coverage90"] <= 1.0
+        assert summary["smd_max_abs"] >= 0 and summary["wasserstein_max"] >= 0
+
+
+def test_report_is_self_contained_and_explains(report_dir):
+    html = (report_dir / "report.html").read_text()
+    assert html.count("src='data:image/png;base64,") == len(FIGURES)
+    assert not re.search(r"src='(?!data:)", html)  # no external resource
+    md = (report_dir / "report.md").read_text()
+    for fig in FIGURES:
+        assert f"({fig})" in md
+    for phrase in ("rotation", "label switching", "Procrustes", "sd ratio", "k-hat", "proper",
+                   "<engine>/posterior.nc"):
+        assert phrase in md, phrase
+
+
+def test_existing_output_is_refused_without_force(report_dir, capsys):
+    rc = main(["compare", DATASET, "--engines", "cavi,nuts", "--out", str(report_dir), "--quiet", *TINY])
+    err = capsys.readouterr().err
+    assert rc == 2 and "--force" in err and err.count("\n") == 1
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--engines", "cavi,svi_meanfield"], "must include nuts"),
+        (["--engines", "cavi,hmc,nuts"], "unknown engine 'hmc'"),
+        (["--engines", "nuts"], "besides nuts"),
+        (["--engines", "cavi,nuts", "--model", "promp"], "CAVI is offered"),
+        (["--engines", "cavi,nuts", "--model", "tree"], "unknown model"),
+        (["--engines", "cavi,nuts", "--preset", "wild"], "unknown hyperparameter preset"),
+    ],
+)
+def test_user_errors_exit_2_with_one_line(tmp_path, capsys, args, message):
+    rc = main(["compare", DATASET, "--out", str(tmp_path / "r"), "--quiet", *args])
+    err = capsys.readouterr().err
+    assert rc == 2, err
+    assert message in err and err.count("\n") == 1
+    assert not (tmp_path / "r").exists()  # refused before anything was written
+
+
+def test_unknown_dataset_exits_2(tmp_path, capsys):
+    rc = main(["compare", "nosuchdata:x", "--out", str(tmp_path / "r"), "--quiet"])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.count("\n") == 1
+
+
+@pytest.mark.slow
+def test_compare_with_svi_guides_and_numpyro_khat_cross_check(tmp_path):
+    """All three SVI guides: k-hat from arviz-stats and numpyro's psis_diagnostic are both computed."""
+    out = tmp_path / "svi"
+    assert main(["compare", DATASET, "--engines", "cavi,svi,nuts", "--out", str(out), "--quiet", "--steps", "2000",
+                 *TINY]) == 0
+    metrics = _strict_json((out / "metrics.json").read_text())
+    for engine in ("svi_meanfield", "svi_autonormal", "svi_lowrank"):
+        e = metrics["engines"][engine]
+        assert set(e["vs_nuts"]) == SIX
+        assert e["psis_khat"] is not None and e["psis_khat_numpyro"] is not None
+        # same particles (same key): arviz-stats' and numpyro's generalized Pareto fits agree
+        assert e["psis_khat"] == pytest.approx(e["psis_khat_numpyro"], abs=0.05)
