@@ -1,0 +1,514 @@
+r"""Stochastic variational inference on the NumPyro declarations of :mod:`lmpromp_ppl.models`.
+
+:func:`run_svi` maximises the ELBO :math:`\mathbb E_q[\log p(\mathbf y, Z) - \log q(Z)]`
+(thesis eq. 3.5) by Adam on reparametrised Monte Carlo gradients
+(``numpyro.infer.Trace_ELBO``) with one of three guides (:func:`make_guide`):
+
+``meanfield`` (engine ``svi_meanfield``)
+    A hand-written guide in CAVI's family, eq. 4.3, on the **full** single-type
+    LMProMP (:func:`lmpromp_ppl.models.lmpromp.lmpromp_model`):
+    :math:`q(\mathbf w_i) = \mathcal N(\boldsymbol\mu_{w_i}, \boldsymbol\Sigma_{w_i})`
+    and :math:`q(\mathbf h_i) = \mathcal N(\boldsymbol\mu_{h_i}, \boldsymbol\Sigma_{h_i})`
+    with full covariances (Cholesky factors), :math:`q(\mathbf b) =
+    \mathcal N(\boldsymbol\mu_b, \sigma_b \mathbf I)` and :math:`q(\mathbf m_v) =
+    \mathcal N(\boldsymbol\mu_{m_v}, \sigma_{m_v} \mathbf I)` isotropic
+    (:math:`\sigma` are variances, as in the thesis), :math:`q(\alpha) =
+    \Gamma(\bar a, \bar b)`, :math:`q(\lambda_v) = \Gamma(\bar c_v, \bar d_v)`
+    (and :math:`q(\beta) = \Gamma` when ``learn_beta``).  SVI and CAVI then
+    optimise the same objective over the same family: ``-loss`` estimates the
+    closed-form CAVI ELBO at the same variational parameters.  Only for
+    ``model_name="lmpromp"``.
+``autonormal`` (``svi_autonormal``)
+    ``numpyro.infer.autoguide.AutoNormal`` (fully factorised Gaussian on the
+    unconstrained scale).
+``lowrank`` (``svi_lowrank``)
+    ``AutoLowRankMultivariateNormal``: a Gaussian with covariance
+    :math:`\mathbf W \mathbf W^T + \mathrm{diag}(\mathbf s^2)` of rank ``rank``
+    (numpyro's default :math:`\lceil\sqrt{n}\rceil` for ``n`` unconstrained
+    dimensions when ``rank`` is None).
+
+The automatic guides run, by default, on the model **collapsed over w**
+(``collapsed="w"``, :mod:`lmpromp_ppl.models.collapsed`), the same model that
+NUTS samples: a guide then approximates only :math:`p(\theta, \mathbf h | \mathbf y)`
+and ``w`` is drawn from the exact conditional :math:`p(\mathbf w | \theta,
+\mathbf y)` for every draw from q (see :meth:`SviResult.sample`).
+``collapsed=False`` puts them on the full model.
+
+Stopping rule
+-------------
+Steps run in chunks of ``window`` steps, each chunk one compiled ``lax.scan``.
+After each chunk the mean loss of the chunk (a moving average over ``window``
+steps, which smooths the Monte Carlo noise of single-step losses) is compared
+with that of the previous chunk; the run stops, ``converged=True``, when the
+change is below ``stop_tol`` relative to the loss, and otherwise at
+``num_steps`` (rounded up to a whole number of chunks, with a
+``ConvergenceWarning``).  ``stop_tol`` must sit above the Monte Carlo noise
+of a ``window``-step mean (about ``sd(loss) / sqrt(window)``) or the rule
+cannot fire; raise ``window`` or ``num_particles`` to lower that noise.
+``learning_rate_decay`` shrinks the step size geometrically, which reduces
+the optimiser's stationary fluctuation around the optimum.  Steps whose loss or gradient is not
+finite are skipped (``SVI.stable_update``).
+
+Timing: ``compile_seconds`` covers ``SVI.init`` and the ahead-of-time compilation
+of the chunk (cached per static configuration); ``seconds`` the optimisation.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+import warnings
+from functools import partial
+from typing import Any, Callable, Mapping, NamedTuple
+
+import numpy as np
+import jax
+import jax.numpy as jnp
+from jax import Array, lax
+import numpyro
+import numpyro.distributions as dist
+from numpyro import handlers
+from numpyro.distributions import constraints
+from numpyro.infer import SVI, Predictive, Trace_ELBO
+from numpyro.infer.autoguide import AutoLowRankMultivariateNormal, AutoNormal
+from numpyro.optim import Adam
+
+from lmpromp_ppl.data.core import ModelData
+from lmpromp_ppl.errors import ConvergenceWarning, LmprompError
+from lmpromp_ppl.inference.nuts import _collapse_spec, _raw_key, model_function, posterior_conditional_draws
+from lmpromp_ppl.models.hyper import Hyperparameters
+from lmpromp_ppl.models.lmpromp import lmpromp_model, prepare_data
+
+__all__ = [
+    "GUIDES",
+    "SviContext",
+    "SviResult",
+    "make_guide",
+    "meanfield_guide",
+    "meanfield_init",
+    "meanfield_params_from_cavi",
+    "cavi_state_from_meanfield",
+    "run_svi",
+]
+
+GUIDES = ("meanfield", "autonormal", "lowrank")
+
+
+def meanfield_guide(data: ModelData, hyper: Hyperparameters, fixed: Mapping | None = None) -> None:
+    r"""Guide of CAVI's family (eq. 4.3) for the full single-type LMProMP.
+
+    Variational parameters (``numpyro.param``; positive ones constrained):
+    ``w_loc`` (L, d), ``w_scale_tril`` (L, d, d), ``h_loc`` (L, V),
+    ``h_scale_tril`` (L, V, V), ``b_loc`` (d,), ``b_var`` () (:math:`\sigma_b`),
+    ``M_loc`` (d, V), ``M_var`` (V,) (:math:`\sigma_{m_v}`), ``alpha_shape``,
+    ``alpha_rate`` () (:math:`\bar a, \bar b`), ``lam_shape``, ``lam_rate`` (V,)
+    (:math:`\bar c, \bar d_v`), and ``beta_shape``, ``beta_rate`` when
+    ``hyper.learn_beta``.  Their initial values come from ``SVI.init``'s
+    ``init_params`` (:func:`meanfield_init`).
+
+    ``fixed`` is accepted for the common ``guide(data, fixed)`` signature and
+    must be empty.
+    """
+    if fixed:
+        raise LmprompError("the meanfield guide does not support fixed sites")
+    num_demos, _, num_weights = data.psi.shape
+    num_latent = hyper.latent_dim
+    eye_d = jnp.eye(num_weights)
+    eye_v = jnp.eye(num_latent)
+    w_loc = numpyro.param("w_loc", jnp.zeros((num_demos, num_weights)))
+    w_tril = numpyro.param("w_scale_tril", jnp.broadcast_to(0.1 * eye_d, (num_demos, num_weights, num_weights)),
+                           constraint=constraints.lower_cholesky)
+    h_loc = numpyro.param("h_loc", jnp.zeros((num_demos, num_latent)))
+    h_tril = numpyro.param("h_scale_tril", jnp.broadcast_to(0.1 * eye_v, (num_demos, num_latent, num_latent)),
+                           constraint=constraints.lower_cholesky)
+    b_loc = numpyro.param("b_loc", jnp.zeros(num_weights))
+    b_var = numpyro.param("b_var", jnp.array(0.01), constraint=constraints.positive)
+    M_loc = numpyro.param("M_loc", jnp.zeros((num_weights, num_latent)))
+    M_var = numpyro.param("M_var", jnp.full(num_latent, 0.01), constraint=constraints.positive)
+    alpha_shape = numpyro.param("alpha_shape", jnp.array(1.0), constraint=constraints.positive)
+    alpha_rate = numpyro.param("alpha_rate", jnp.array(1.0), constraint=constraints.positive)
+    lam_shape = numpyro.param("lam_shape", jnp.ones(num_latent), constraint=constraints.positive)
+    lam_rate = numpyro.param("lam_rate", jnp.ones(num_latent), constraint=constraints.positive)
+
+    numpyro.sample("b", dist.Normal(b_loc, jnp.sqrt(b_var)).to_event(1))
+    numpyro.sample("lam", dist.Gamma(lam_shape, lam_rate).to_event(1))
+    numpyro.sample("M", dist.Normal(M_loc, jnp.broadcast_to(jnp.sqrt(M_var), M_loc.shape)).to_event(2))
+    numpyro.sample("alpha", dist.Gamma(alpha_shape, alpha_rate))
+    if hyper.learn_beta:
+        beta_shape = numpyro.param("beta_shape", jnp.array(hyper.beta_a0), constraint=constraints.positive)
+        beta_rate = numpyro.param("beta_rate", jnp.array(hyper.beta_b0), constraint=constraints.positive)
+        numpyro.sample("beta", dist.Gamma(beta_shape, beta_rate))
+    with numpyro.plate("demo", num_demos):
+        numpyro.sample("h", dist.MultivariateNormal(h_loc, scale_tril=h_tril))
+        numpyro.sample("w", dist.MultivariateNormal(w_loc, scale_tril=w_tril))
+
+
+def meanfield_init(data: ModelData, hyper: Hyperparameters) -> dict[str, np.ndarray]:
+    r"""A starting point for :func:`meanfield_guide` in the spirit of Sec. 4.1.1.
+
+    Per-demonstration ridge regression :math:`\hat{\mathbf w}_i = (\beta\Psi_i^T\Psi_i
+    + \mathbf I)^{-1}\beta\Psi_i^T \mathbf y_i`; ``b`` their mean; ``M`` and ``h``
+    from the leading V principal directions (``h`` scaled to unit variance, the
+    thesis's PCA initialisation); then one pass of the Sec. 4.1.1 formulas for the
+    covariances and the Gamma factors given these means.
+    """
+    prepared = prepare_data(data)
+    psi, y = np.asarray(prepared.psi), np.asarray(prepared.y)
+    num_demos, _, num_weights = psi.shape
+    num_latent = hyper.latent_dim
+    beta = hyper.beta_a0 / hyper.beta_b0 if hyper.learn_beta else hyper.beta
+    gram = np.einsum("lsd,lse->lde", psi, psi)
+    w_hat = np.linalg.solve(beta * gram + np.eye(num_weights),
+                            beta * np.einsum("lsd,ls->ld", psi, y)[..., None])[..., 0]
+    b = w_hat.mean(axis=0)
+    centred = w_hat - b
+    _, sing, vt = np.linalg.svd(centred, full_matrices=False)
+    sing = np.concatenate([sing, np.zeros(num_latent)])[:num_latent]
+    vt = np.concatenate([vt, np.zeros((num_latent, num_weights))])[:num_latent]
+    scale = sing / np.sqrt(num_demos)
+    M = vt.T * scale
+    h = np.where(scale > 0, (centred @ vt.T) / np.where(scale > 0, scale, 1.0), 0.0)
+    resid = centred - h @ M.T
+    a_bar = hyper.a0 + 0.5 * num_demos * num_weights
+    b_bar = hyper.b0 + 0.5 * np.sum(resid**2) + 1e-3 * a_bar  # keeps E[alpha] finite on exact fits
+    alpha = a_bar / b_bar
+    w_cov = np.linalg.inv(beta * gram + alpha * np.eye(num_weights))
+    lam = (hyper.c0 + 0.5 * num_weights) / (hyper.d0 + 0.5 * np.sum(M**2, axis=0))
+    h_cov = np.linalg.inv(alpha * M.T @ M + hyper.gamma * np.eye(num_latent))
+    init = {
+        "w_loc": w_hat,
+        "w_scale_tril": np.linalg.cholesky(w_cov),
+        "h_loc": h,
+        "h_scale_tril": np.broadcast_to(np.linalg.cholesky(h_cov), (num_demos, num_latent, num_latent)).copy(),
+        "b_loc": b,
+        "b_var": np.asarray(1.0 / (num_demos * alpha + hyper.lambda0)),
+        "M_loc": M,
+        "M_var": 1.0 / (alpha * np.sum(h**2, axis=0) + lam),
+        "alpha_shape": np.asarray(a_bar),
+        "alpha_rate": np.asarray(b_bar),
+        "lam_shape": np.full(num_latent, hyper.c0 + 0.5 * num_weights),
+        "lam_rate": hyper.d0 + 0.5 * np.sum(M**2, axis=0),
+    }
+    if hyper.learn_beta:
+        init["beta_shape"] = np.asarray(hyper.beta_a0)
+        init["beta_rate"] = np.asarray(hyper.beta_b0)
+    return init
+
+
+def meanfield_params_from_cavi(state) -> dict[str, np.ndarray]:
+    """The :func:`meanfield_guide` parameters of a CAVI state (same factors, eq. 4.3).
+
+    Parameters
+    ----------
+    state : :class:`lmpromp_ppl.inference.cavi.CaviState`
+
+    Returns
+    -------
+    dict of guide parameters (covariances as Cholesky factors)
+    """
+    from lmpromp_ppl.inference.cavi import w_covariance
+
+    return {
+        "w_loc": np.asarray(state.w_mean),
+        "w_scale_tril": np.linalg.cholesky(np.asarray(w_covariance(state))),
+        "h_loc": np.asarray(state.h_mean),
+        "h_scale_tril": np.linalg.cholesky(np.asarray(state.h_cov)),
+        "b_loc": np.asarray(state.b_mean),
+        "b_var": np.asarray(state.b_var),
+        "M_loc": np.asarray(state.M_mean),
+        "M_var": np.asarray(state.M_var),
+        "alpha_shape": np.asarray(state.alpha_shape),
+        "alpha_rate": np.asarray(state.alpha_rate),
+        "lam_shape": np.asarray(state.lam_shape),
+        "lam_rate": np.asarray(state.lam_rate),
+    }
+
+
+def cavi_state_from_meanfield(params: Mapping[str, Any]):
+    """The CAVI state holding the factors of :func:`meanfield_guide` parameters.
+
+    With it, :func:`lmpromp_ppl.inference.cavi.elbo` evaluates the closed-form
+    bound at SVI's parameters.  The weight covariances are full matrices
+    (``FullCovariance``), so evaluate it on data prepared with
+    ``cavi.prepare_cavi_data(data, shared_psi=False)``.  (``beta`` is fixed in CAVI, so a guide with
+    ``beta_shape``/``beta_rate`` has no CAVI counterpart.)
+    """
+    from lmpromp_ppl.inference.cavi import CaviState, FullCovariance
+
+    if "beta_shape" in params:
+        raise LmprompError("CAVI keeps beta fixed; a meanfield guide with learned beta has no CAVI state")
+    p = {k: jnp.asarray(v, jnp.float64) for k, v in params.items()}
+    w_tril, h_tril = p["w_scale_tril"], p["h_scale_tril"]
+    return CaviState(
+        w_mean=p["w_loc"],
+        w_cov=FullCovariance(w_tril @ jnp.swapaxes(w_tril, -1, -2)),
+        h_mean=p["h_loc"],
+        h_cov=h_tril @ jnp.swapaxes(h_tril, -1, -2),
+        b_mean=p["b_loc"],
+        b_var=p["b_var"],
+        M_mean=p["M_loc"],
+        M_var=p["M_var"],
+        alpha_shape=p["alpha_shape"],
+        alpha_rate=p["alpha_rate"],
+        lam_shape=p["lam_shape"],
+        lam_rate=p["lam_rate"],
+    )
+
+
+def make_guide(name: str, model_name: str, data: ModelData, hyper: Hyperparameters, *,
+               collapsed: bool | str = "w", rank: int | None = None,
+               fixed_names: tuple[str, ...] = ()) -> tuple[Callable, Callable]:
+    """The model and guide pair, both called as ``fn(data, fixed)``.
+
+    Parameters
+    ----------
+    name : ``"meanfield"``, ``"autonormal"`` or ``"lowrank"``
+    model_name : ``"promp"``, ``"lmpromp"`` or ``"mixture"``
+    data : model inputs (the guides built here take their shapes at run time;
+        kept so that every guide factory has the same signature)
+    hyper : hyperparameters
+    collapsed : for the automatic guides, ``"w"`` (default), ``"wh"`` or
+        ``False``; the meanfield guide is always on the full model
+    rank : rank of the low-rank guide (None: numpyro's default)
+    fixed_names : sites that the model is conditioned on (automatic guides only)
+
+    Returns
+    -------
+    model, guide
+    """
+    if name not in GUIDES:
+        raise LmprompError(f"unknown guide {name!r}; choose from {list(GUIDES)}")
+    if name == "meanfield":
+        if model_name != "lmpromp":
+            raise LmprompError(
+                f"the svi_meanfield guide exists for the single-type 'lmpromp' model only, not {model_name!r}"
+            )
+        if fixed_names:
+            raise LmprompError("the meanfield guide does not support fixed sites")
+
+        def full_model(data, fixed):
+            lmpromp_model(data, hyper)
+
+        return full_model, lambda data, fixed: meanfield_guide(data, hyper, fixed)
+    spec = _collapse_spec(model_name, collapsed)
+    base = model_function(model_name, spec)
+
+    def model(data, fixed):
+        with handlers.condition(data=fixed):
+            base(data, hyper)
+
+    if name == "autonormal":
+        return model, AutoNormal(model)
+    if rank is not None and (isinstance(rank, bool) or int(rank) != rank or rank < 1):
+        raise LmprompError(f"rank must be an integer >= 1, got {rank!r}")
+    return model, AutoLowRankMultivariateNormal(model, rank=rank)
+
+
+class SviContext(NamedTuple):
+    """Everything :meth:`SviResult.sample` needs besides the parameters."""
+
+    model_name: str
+    guide: str
+    spec: str
+    rank: int | None
+    data: ModelData
+    hyper: Hyperparameters
+    fixed: dict
+
+
+class SviResult(NamedTuple):
+    """What :func:`run_svi` returns.
+
+    Attributes
+    ----------
+    params : variational parameters (constrained values), name -> array
+    loss_trace : (num_steps_run,) loss (negative ELBO estimate) per step
+    num_steps_run : number of optimisation steps taken
+    converged : whether the stopping rule fired before ``num_steps``
+    seconds : optimisation time, excluding compilation
+    compile_seconds : ``SVI.init`` and compilation time
+    options : the engine options, for the result's attributes
+    context : model, guide, data and hyperparameters, for :meth:`sample`
+    """
+
+    params: dict[str, np.ndarray]
+    loss_trace: np.ndarray
+    num_steps_run: int
+    converged: bool
+    seconds: float
+    compile_seconds: float
+    options: dict[str, Any]
+    context: SviContext
+
+    def sample(self, key: jax.Array, num_draws: int) -> dict[str, np.ndarray]:
+        r"""Draws from q with the contract's site names, each (num_draws, ...).
+
+        Latent and deterministic sites of the model come from the guide (through
+        ``numpyro.infer.Predictive``); on a collapsed model ``w`` (and ``h``) are
+        then drawn from :math:`p(\mathbf w | \theta, \mathbf y)` for each draw.
+        Sites held through ``fixed`` are left out.
+        """
+        ctx = self.context
+        num_draws = int(num_draws)
+        if num_draws < 1:
+            raise LmprompError(f"num_draws must be >= 1, got {num_draws}")
+        model, guide = make_guide(ctx.guide, ctx.model_name, ctx.data, ctx.hyper, collapsed=ctx.spec,
+                                  rank=ctx.rank, fixed_names=tuple(sorted(ctx.fixed)))
+        key_q, key_cond = jax.random.split(_raw_key(key))
+        trace = handlers.trace(handlers.seed(model, 0)).get_trace(ctx.data, ctx.fixed)
+        sites = [n for n, s in trace.items()
+                 if (s["type"] == "sample" and not s["is_observed"]) or s["type"] == "deterministic"]
+        params = {k: jnp.asarray(v) for k, v in self.params.items()}
+        predictive = Predictive(model, guide=guide, params=params, num_samples=num_draws, return_sites=sites)
+        draws = dict(predictive(key_q, ctx.data, ctx.fixed))
+        spec = "" if ctx.guide == "meanfield" else ctx.spec
+        if spec:
+            flat = dict(draws)
+            flat.update({k: jnp.broadcast_to(v, (num_draws,) + v.shape) for k, v in ctx.fixed.items()})
+            draws.update(posterior_conditional_draws(ctx.model_name, spec, key_cond, ctx.data, ctx.hyper, flat))
+        return {k: np.asarray(v) for k, v in draws.items()}
+
+
+_PROGRAMS: dict[tuple, tuple] = {}
+
+
+def _schedule(learning_rate: float, decay: float) -> Callable[[Array], Array]:
+    """Adam step size at step ``i``: ``learning_rate * decay ** i``."""
+    return lambda i: learning_rate * decay**i
+
+
+def _eager_init(svi: SVI, key: Array, data: ModelData, fixed: dict, init: dict):
+    return svi.init(key, data, fixed, init_params=init or None)
+
+
+def run_svi(
+    model_name: str,
+    data: ModelData,
+    hyper: Hyperparameters,
+    key: jax.Array,
+    *,
+    guide: str = "lowrank",
+    collapsed: bool | str = "w",
+    num_steps: int = 20000,
+    learning_rate: float = 0.01,
+    learning_rate_decay: float = 1.0,
+    num_particles: int = 1,
+    rank: int | None = None,
+    stop_tol: float = 1e-4,
+    window: int = 500,
+    progress: bool = False,
+    init_params: Mapping[str, Any] | None = None,
+    fixed: Mapping[str, Any] | None = None,
+) -> SviResult:
+    r"""Fit a guide to the posterior of a declared model by SVI (Adam on the ELBO).
+
+    Parameters
+    ----------
+    model_name : ``"promp"``, ``"lmpromp"`` or ``"mixture"``
+    data : padded model inputs ``(psi (L, S, d), y (L, S), mask (L, S))``
+    hyper : hyperparameters
+    key : PRNG key (typed or raw)
+    guide : ``"meanfield"``, ``"autonormal"`` or ``"lowrank"`` (module docstring)
+    collapsed : model of the automatic guides: ``"w"`` (default), ``"wh"``, ``False``
+    num_steps : maximum number of steps (rounded up to a multiple of ``window``)
+    learning_rate : Adam step size
+    learning_rate_decay : the step size at step ``i`` is
+        ``learning_rate * learning_rate_decay ** i`` (1: constant)
+    num_particles : Monte Carlo samples per ELBO gradient estimate
+    rank : rank of the low-rank guide
+    stop_tol : stop when the relative change of the ``window``-step mean loss
+        falls below this
+    window : steps per chunk, the smoothing window of the stopping rule
+    progress : print the mean loss of each chunk to stderr
+    init_params : initial (constrained) values of variational parameters; for
+        the meanfield guide the default is :func:`meanfield_init`
+    fixed : values at which some latent sites are held (automatic guides)
+
+    Returns
+    -------
+    SviResult
+    """
+    if not isinstance(hyper, Hyperparameters):
+        raise LmprompError("hyper must be a Hyperparameters instance")
+    for name, value, minimum in (("num_steps", num_steps, 1), ("num_particles", num_particles, 1),
+                                 ("window", window, 2)):
+        if isinstance(value, bool) or int(value) != value or value < minimum:
+            raise LmprompError(f"{name} must be an integer >= {minimum}, got {value!r}")
+    if not (np.isfinite(learning_rate) and learning_rate > 0):
+        raise LmprompError(f"learning_rate must be positive, got {learning_rate!r}")
+    if not (np.isfinite(stop_tol) and stop_tol >= 0):
+        raise LmprompError(f"stop_tol must be non-negative, got {stop_tol!r}")
+    spec = _collapse_spec(model_name, collapsed)
+    data = ModelData(*(jnp.asarray(a, dtype=jnp.float64) for a in data))
+    prepare_data(data)  # shape and value checks with their own messages
+    fixed = {k: jnp.asarray(v, dtype=jnp.float64) for k, v in (fixed or {}).items()}
+    model, guide_fn = make_guide(guide, model_name, data, hyper, collapsed=spec, rank=rank,
+                                 fixed_names=tuple(sorted(fixed)))
+    if guide == "meanfield":
+        init = meanfield_init(data, hyper)
+        init.update(init_params or {})
+    else:
+        init = dict(init_params or {})
+    init = {k: jnp.asarray(v, dtype=jnp.float64) for k, v in init.items()}
+
+    if not (np.isfinite(learning_rate_decay) and 0 < learning_rate_decay <= 1):
+        raise LmprompError(f"learning_rate_decay must lie in (0, 1], got {learning_rate_decay!r}")
+    schedule = _schedule(float(learning_rate), float(learning_rate_decay))
+    cache_key = (model_name, guide, spec, rank, hyper, float(learning_rate), float(learning_rate_decay),
+                 int(num_particles), int(window), tuple(sorted(fixed)),
+                 jax.tree_util.tree_structure((data, fixed, init)),
+                 tuple((jnp.shape(a), jnp.result_type(a)) for a in jax.tree_util.tree_leaves((data, fixed, init))))
+    start = time.perf_counter()
+    cached = _PROGRAMS.get(cache_key)
+    if cached is None:
+        svi = SVI(model, guide_fn, Adam(schedule), Trace_ELBO(num_particles=int(num_particles)))
+
+        def run_chunk(state, data, fixed):
+            return lax.scan(lambda s, _: svi.stable_update(s, data, fixed), state, None, length=int(window))
+
+        if guide == "meanfield":
+            # the hand-written guide has no side effects: compile its initialisation too
+            init_fn = jax.jit(lambda k, d, f, p: svi.init(k, d, f, init_params=p))
+        else:
+            # an autoguide records its prototype trace on first call: initialise eagerly
+            init_fn = partial(_eager_init, svi)
+        state = init_fn(_raw_key(key), data, fixed, init)
+        chunk = jax.jit(run_chunk).lower(state, data, fixed).compile()
+        _PROGRAMS[cache_key] = cached = (svi, init_fn, chunk)
+    else:
+        svi, init_fn, chunk = cached
+        state = init_fn(_raw_key(key), data, fixed, init)
+    state = jax.block_until_ready(state)
+    compile_seconds = time.perf_counter() - start
+
+    start = time.perf_counter()
+    losses: list[np.ndarray] = []
+    converged = False
+    previous = None  # mean loss of the previous chunk
+    while len(losses) * window < num_steps:
+        state, chunk_loss = chunk(state, data, fixed)
+        chunk_loss = np.asarray(chunk_loss)
+        losses.append(chunk_loss)
+        finite = chunk_loss[np.isfinite(chunk_loss)]
+        current = float(np.mean(finite)) if finite.size else None
+        if progress and current is not None:
+            print(f"svi_{guide}: step {len(losses) * window}, mean loss {current:.6g}", file=sys.stderr)
+        if previous is not None and current is not None:
+            if abs(current - previous) <= stop_tol * abs(previous):
+                converged = True
+                break
+        previous = current
+    seconds = time.perf_counter() - start
+    if not converged:
+        warnings.warn(f"svi_{guide} stopped at its step limit ({num_steps}) before the "
+                      f"smoothed loss changed by less than {stop_tol}", ConvergenceWarning, stacklevel=2)
+    params = {k: np.asarray(v) for k, v in svi.get_params(state).items()}
+    loss_trace = np.concatenate(losses)
+    options = {"guide": guide, "collapsed": "none" if guide == "meanfield" else (spec or "none"),
+               "num_steps": int(num_steps), "learning_rate": float(learning_rate),
+               "learning_rate_decay": float(learning_rate_decay),
+               "num_particles": int(num_particles), "rank": rank, "stop_tol": float(stop_tol),
+               "window": int(window), "fixed": sorted(fixed)}
+    context = SviContext(model_name, guide, spec, rank, data, hyper, fixed)
+    return SviResult(params, loss_trace, int(loss_trace.shape[0]), converged, seconds, compile_seconds,
+                     options, context)
