@@ -40,11 +40,13 @@ Steps run in chunks of ``window`` steps, each chunk one compiled ``lax.scan``.
 After each chunk the mean loss of the chunk (a moving average over ``window``
 steps, which smooths the Monte Carlo noise of single-step losses) is compared
 with that of the previous chunk; the run stops, ``converged=True``, when the
-change is below ``stop_tol`` relative to the loss, and otherwise at
-``num_steps`` (rounded up to a whole number of chunks, with a
-``ConvergenceWarning``).  ``stop_tol`` must sit above the Monte Carlo noise
-of a ``window``-step mean (about ``sd(loss) / sqrt(window)``) or the rule
-cannot fire; raise ``window`` or ``num_particles`` to lower that noise.
+change is below ``stop_tol`` relative to the loss or below twice its Monte
+Carlo standard error (``sqrt(var_prev / n + var_cur / n)`` from the
+single-step losses of the two chunks: no progress is detectable through the
+noise), and otherwise at ``num_steps`` (rounded up to a whole number of
+chunks, with a ``ConvergenceWarning``).  ``stop_tol=0`` disables the rule
+(every step is run).  Raise ``window`` or ``num_particles`` to lower the
+noise and so stop closer to the optimum.
 ``learning_rate_decay`` shrinks the step size geometrically, which reduces
 the optimiser's stationary fluctuation around the optimum.  Steps whose loss or gradient is not
 finite are skipped (``SVI.stable_update``).
@@ -416,8 +418,9 @@ def run_svi(
         ``learning_rate * learning_rate_decay ** i`` (1: constant)
     num_particles : Monte Carlo samples per ELBO gradient estimate
     rank : rank of the low-rank guide
-    stop_tol : stop when the relative change of the ``window``-step mean loss
-        falls below this
+    stop_tol : stop when the change of the ``window``-step mean loss falls below
+        this relative tolerance or below twice its Monte Carlo standard error
+        (module docstring); 0 disables the rule
     window : steps per chunk, the smoothing window of the stopping rule
     progress : print the mean loss of each chunk to stderr
     init_params : initial (constrained) values of variational parameters; for
@@ -485,19 +488,22 @@ def run_svi(
     losses: list[np.ndarray] = []
     converged = False
     previous = None  # mean loss of the previous chunk
+    previous_var = None  # variance of the mean loss of the previous chunk
     while len(losses) * window < num_steps:
         state, chunk_loss = chunk(state, data, fixed)
         chunk_loss = np.asarray(chunk_loss)
         losses.append(chunk_loss)
         finite = chunk_loss[np.isfinite(chunk_loss)]
         current = float(np.mean(finite)) if finite.size else None
+        current_var = float(np.var(finite) / finite.size) if finite.size > 1 else None
         if progress and current is not None:
             print(f"svi_{guide}: step {len(losses) * window}, mean loss {current:.6g}", file=sys.stderr)
-        if previous is not None and current is not None:
-            if abs(current - previous) <= stop_tol * abs(previous):
+        if previous is not None and current is not None and stop_tol > 0:
+            noise = 2.0 * np.sqrt(previous_var + current_var) if None not in (previous_var, current_var) else 0.0
+            if abs(current - previous) <= max(stop_tol * abs(previous), noise):
                 converged = True
                 break
-        previous = current
+        previous, previous_var = current, current_var
     seconds = time.perf_counter() - start
     if not converged:
         warnings.warn(f"svi_{guide} stopped at its step limit ({num_steps}) before the "
