@@ -97,6 +97,10 @@ __all__ = [
     "sample_q",
     "point_estimate",
     "active_latent_dims",
+    "FAMILIES",
+    "MixtureState",
+    "fit_cavi_mixture",
+    "active_components",
 ]
 
 _LOG_2PI = math.log(2.0 * math.pi)
@@ -663,8 +667,14 @@ def _iterate(
     limit: Array,
     elbo_previous: Array,
     buffer: int,
+    step_fn=None,
 ) -> RunResult:
-    """Sweep until the relative ELBO change is below ``tol``, at most ``limit`` (<= ``buffer``) times."""
+    """Sweep until the relative ELBO change is below ``tol``, at most ``limit`` (<= ``buffer``) times.
+
+    ``step_fn(state, data, hyper) -> (state, info)`` is the sweep (static; default :func:`step`);
+    the extensions of :mod:`lmpromp_ppl.inference.cavi_mixture` pass theirs.
+    """
+    sweep = step if step_fn is None else step_fn
 
     def cond(carry):
         _, iteration, previous, _, converged = carry
@@ -672,7 +682,7 @@ def _iterate(
 
     def body(carry):
         state, iteration, previous, trace, _ = carry
-        state, info = step(state, data, hyper)
+        state, info = sweep(state, data, hyper)
         converged = jnp.abs(info.elbo - previous) <= tol * jnp.abs(info.elbo)
         return state, iteration + 1, info.elbo, trace.at[iteration].set(info.elbo), converged
 
@@ -687,7 +697,7 @@ def _iterate(
     return RunResult(state, trace, iteration, converged)
 
 
-_iterate_jit = jax.jit(_iterate, static_argnames="buffer")
+_iterate_jit = jax.jit(_iterate, static_argnames=("buffer", "step_fn"))
 
 
 def run(
@@ -741,18 +751,19 @@ class CaviFit(NamedTuple):
 _COMPILED: dict = {}
 
 
-def _compiled_iterate(args: tuple, buffer: int):
+def _compiled_iterate(args: tuple, buffer: int, step_fn=None):
     """Ahead-of-time compiled :func:`_iterate` for these argument shapes; (function, compile seconds)."""
     leaves, treedef = jax.tree.flatten(args)
     key = (
         treedef,
         tuple((np.shape(x), jnp.asarray(x).dtype, getattr(x, "weak_type", False)) for x in leaves),
         buffer,
+        step_fn,
     )
     if key in _COMPILED:
         return _COMPILED[key], 0.0
     start = time.perf_counter()
-    compiled = _iterate_jit.lower(*args, buffer=buffer).compile()
+    compiled = _iterate_jit.lower(*args, buffer=buffer, step_fn=step_fn).compile()
     seconds = time.perf_counter() - start
     _COMPILED[key] = compiled
     return compiled, seconds
@@ -766,13 +777,17 @@ def _run_one(
     max_iter: int,
     progress: bool,
     description: str,
+    step_fn=None,
 ) -> tuple[RunResult, np.ndarray, float, float]:
-    """Run one restart, in chunks when showing progress; (result, trace, seconds, compile seconds)."""
+    """Run one restart, in chunks when showing progress; (result, trace, seconds, compile seconds).
+
+    ``step_fn``: the sweep (default :func:`step`), see :func:`_iterate`.
+    """
     chunk = min(max_iter, 50) if progress else max_iter
     tol_arr = jnp.asarray(tol, jnp.float64)
     previous = jnp.asarray(-jnp.inf)
     probe = (state, data, hyper, tol_arr, jnp.asarray(chunk, jnp.int32), previous)
-    compiled, compile_seconds = _compiled_iterate(probe, chunk)
+    compiled, compile_seconds = _compiled_iterate(probe, chunk, step_fn)
     bar = None
     if progress:
         from tqdm.auto import tqdm
@@ -814,12 +829,18 @@ def fit_cavi(
     num_restarts: int = 1,
     progress: bool = False,
     shared_psi: bool | None = None,
+    family: str = "columnwise",
 ) -> CaviFit:
     """Fit the single-type LMProMP by CAVI, keeping the best of ``num_restarts`` starts.
 
     The first start is the thesis's initialisation (ridge regression + PCA,
     :func:`lmpromp_ppl.inference.init.init_state`); further starts perturb it
-    with keys split from ``key``.
+    with keys split from ``key``.  With the thesis's family and a fixed beta the
+    result holds a :class:`CaviState`; with ``family="rowwise"`` or
+    ``hyper.learn_beta`` the fit runs in
+    :func:`lmpromp_ppl.inference.cavi_mixture.fit_single_extended` and holds a
+    K = 1 :class:`~lmpromp_ppl.inference.cavi_mixture.MixtureState` (the
+    functions below accept both).
 
     Parameters
     ----------
@@ -831,6 +852,9 @@ def fit_cavi(
     num_restarts : number of starts
     progress : show a progress bar (tqdm) updated every 50 sweeps
     shared_psi : see :func:`prepare_cavi_data`
+    family : ``"columnwise"`` (the thesis's isotropic q(m_v), default) or
+        ``"rowwise"`` (rows of M share one V x V covariance), see
+        :data:`lmpromp_ppl.inference.cavi_mixture.FAMILIES`
 
     Returns
     -------
@@ -844,8 +868,14 @@ def fit_cavi(
         raise LmprompError(
             f"the single-type CAVI engine needs num_components=1, got {hyper.num_components}"
         )
-    if hyper.learn_beta:
-        raise LmprompError("the single-type CAVI engine keeps beta fixed; set learn_beta=False")
+    _check_family(family)
+    if family != "columnwise" or hyper.learn_beta:
+        from lmpromp_ppl.inference.cavi_mixture import fit_single_extended
+
+        return fit_single_extended(
+            data, hyper, key, tol=tol, max_iter=max_iter, num_restarts=num_restarts,
+            progress=progress, shared_psi=shared_psi, family=family,
+        )
     if not (isinstance(tol, (int, float)) and tol > 0 and math.isfinite(tol)):
         raise LmprompError(f"tol must be a positive number, got {tol!r}")
     for name, value in (("max_iter", max_iter), ("num_restarts", num_restarts)):
@@ -899,12 +929,21 @@ def _gamma_draws(key: Array, shapes: Array, num_draws: int) -> Array:
     return jax.random.gamma(key, shapes, (num_draws,) + shapes.shape)
 
 
+def _extension(state) -> bool:
+    """True for a :class:`~lmpromp_ppl.inference.cavi_mixture.MixtureState` (mixture or extended single type)."""
+    return not isinstance(state, CaviState)
+
+
 def sample_q(key: Array, state: CaviState, num_draws: int) -> dict[str, Array]:
     """Independent draws from q with a leading draw axis.
 
     Returns a dict with ``b`` (n, d), ``M`` (n, d, V), ``h`` (n, L, V),
-    ``w`` (n, L, d), ``alpha`` (n,), ``lam`` (n, V).
+    ``w`` (n, L, d), ``alpha`` (n,), ``lam`` (n, V).  For a
+    :class:`~lmpromp_ppl.inference.cavi_mixture.MixtureState` see
+    :func:`lmpromp_ppl.inference.cavi_mixture.sample_q` (mixture sites, ``beta``).
     """
+    if _extension(state):
+        return _mixture.sample_q(key, state, num_draws)
     L, d = state.w_mean.shape
     V = state.h_mean.shape[1]
     k_w, k_h, k_b, k_M, k_g = jax.random.split(key, 5)
@@ -925,7 +964,13 @@ def sample_q(key: Array, state: CaviState, num_draws: int) -> dict[str, Array]:
 
 
 def point_estimate(state: CaviState) -> dict[str, Array]:
-    """Posterior means of q: ``b``, ``M``, ``alpha``, ``lam``, ``h``, ``w`` (for plug-in prediction)."""
+    """Posterior means of q: ``b``, ``M``, ``alpha``, ``lam``, ``h``, ``w`` (for plug-in prediction).
+
+    For a :class:`~lmpromp_ppl.inference.cavi_mixture.MixtureState` see
+    :func:`lmpromp_ppl.inference.cavi_mixture.point_estimate`.
+    """
+    if _extension(state):
+        return _mixture.point_estimate(state)
     return {
         "b": state.b_mean,
         "M": state.M_mean,
@@ -936,7 +981,28 @@ def point_estimate(state: CaviState) -> dict[str, Array]:
     }
 
 
-def active_latent_dims(state: CaviState, threshold: float = 1e-3) -> list[int]:
-    """Latent dimensions v with :math:`1/E[\\lambda_v] > \\text{threshold}\\cdot\\max_u 1/E[\\lambda_u]` (ARD)."""
+def active_latent_dims(state: CaviState, threshold: float = 1e-3) -> list[int] | list[list[int]]:
+    """Latent dimensions v with :math:`1/E[\\lambda_v] > \\text{threshold}\\cdot\\max_u 1/E[\\lambda_u]` (ARD).
+
+    A list of indices; for a mixture one list per component
+    (:func:`lmpromp_ppl.inference.cavi_mixture.active_latent_dims`).
+    """
+    if _extension(state):
+        return _mixture.active_latent_dims(state, threshold)
     inverse = np.asarray(state.lam_rate / state.lam_shape)
     return [int(v) for v in np.flatnonzero(inverse > threshold * inverse.max())]
+
+
+def _check_family(family: str) -> None:
+    if family not in _mixture.FAMILIES:
+        raise LmprompError(f"unknown family {family!r} for q(M); choose from {list(_mixture.FAMILIES)}")
+
+
+# The extensions (mixture, row-wise q(M), learned beta) build on the kernels above.
+from lmpromp_ppl.inference import cavi_mixture as _mixture  # noqa: E402
+from lmpromp_ppl.inference.cavi_mixture import (  # noqa: E402
+    FAMILIES,
+    MixtureState,
+    active_components,
+    fit_cavi_mixture,
+)
