@@ -1,7 +1,7 @@
 """Model declarations (NumPyro) and hyperparameters.
 
 Every engine runs on these declarations: :func:`get_model` maps the model
-names of ``../shared/CONTRACTS.md`` (``"promp"``, ``"lmpromp"``, ``"mixture"``)
+names of docs/cli.md (``"promp"``, ``"lmpromp"``, ``"mixture"``)
 to the NumPyro model functions, full or collapsed.
 """
 

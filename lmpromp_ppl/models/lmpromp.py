@@ -18,7 +18,7 @@ with :math:`\beta \sim \Gamma(\beta_{a0}, \beta_{b0})` when
 ``hyper.learn_beta`` and the fixed ``hyper.beta`` otherwise (the thesis keeps
 :math:`\beta` fixed, Sec. 4.1).
 
-Sites and shapes (``../shared/CONTRACTS.md``): ``b`` (d,), ``lam`` (V,), ``M``
+Sites and shapes (docs/cli.md): ``b`` (d,), ``lam`` (V,), ``M``
 (d, V), ``alpha`` (), ``beta`` () when learned, ``h`` (L, V), ``w`` (L, d),
 ``y`` (L, S).  Entries with ``mask == 0`` (padding or missing values) do not
 contribute to the density.

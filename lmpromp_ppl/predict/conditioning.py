@@ -1,6 +1,6 @@
 r"""Prediction by conditioning: ProMP (Sec. 3.1.2), LMProMP (Sec. 4.1.2), mixture (Sec. 4.2.2).
 
-Parameters are plain dicts of arrays with the site names of CONTRACTS.md, in
+Parameters are plain dicts of arrays with the site names of docs/cli.md, in
 the standardised space of the fit:
 
 * ``"promp"``: ``mu_w`` (d,), ``Sigma_w`` (d, d);
