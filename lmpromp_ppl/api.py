@@ -16,7 +16,7 @@ from lmpromp_ppl.errors import LmprompError
 from lmpromp_ppl.models.hyper import Hyperparameters, preset
 from lmpromp_ppl.results import FitResult
 
-__all__ = ["MODELS", "ENGINES", "fit", "prepare"]
+__all__ = ["MODELS", "ENGINES", "ENGINE_OPTIONS", "fit", "prepare", "observed_arrays"]
 
 MODELS = ("promp", "lmpromp", "mixture")
 ENGINES = ("cavi", "svi_meanfield", "svi_autonormal", "svi_lowrank", "nuts")
@@ -27,6 +27,17 @@ ENGINE_OPTIONS = {
     "nuts": {"num_chains", "num_warmup", "num_samples", "target_accept", "max_tree_depth", "collapsed", "dense_mass"},
     "svi": {"num_steps", "learning_rate", "num_particles", "rank", "stop_tol", "window"},
 }
+
+
+def observed_arrays(demos: Demonstrations) -> dict[str, np.ndarray]:
+    """``t`` (L, T) and ``y`` (L, T, D) in data units, NaN-padded to the longest demonstration."""
+    size = int(demos.lengths.max())
+    t = np.full((demos.num_demos, size), np.nan)
+    y = np.full((demos.num_demos, size, demos.num_dofs), np.nan)
+    for i, (ti, yi) in enumerate(zip(demos.times, demos.positions)):
+        t[i, : ti.shape[0]] = ti
+        y[i, : ti.shape[0]] = yi
+    return {"t": t, "y": y}
 
 
 def prepare(data: Demonstrations | str, num_basis: int, *, standardise: bool = True):
@@ -104,6 +115,9 @@ def fit(
         scaling=scaling,
         dataset=spec,
         dof_names=raw.dof_names,
+        observed=observed_arrays(raw),
+        options=dict(options),
+        seed=seed,
     )
     key = jax.random.key(seed)
     if engine == "cavi":

@@ -1,4 +1,4 @@
-"""One result layout for every engine (docs/cli.md, "Files written").
+r"""One result layout for every engine (docs/cli.md, "Files written").
 
 A :class:`FitResult` holds what an engine produced on one model and dataset.
 :meth:`FitResult.to_datatree` turns it into an ArviZ-style
@@ -9,7 +9,16 @@ A :class:`FitResult` holds what an engine produced on one model and dataset.
 * ``derived``: identifiable quantities (``gram_eig``, ``pred_mean``, ``pred_sd``);
 * ``sample_stats``: NUTS statistics (divergences, tree depth, step size, ...);
 * ``optimization``: ELBO or loss traces with dim ``iteration``;
-* ``point_estimate``: posterior means used for plug-in prediction.
+* ``point_estimate``: posterior means used for plug-in prediction;
+* ``observed_data``: the demonstrations in data units, ``t`` (``demo``,
+  ``sample``) and ``y`` (``demo``, ``sample``, ``dof``), NaN-padded when
+  lengths differ;
+* ``posterior_predictive`` (on request): replicated demonstrations ``y``
+  (``chain``, ``draw``, ``demo``, ``sample``, ``dof``) drawn from
+  :math:`N(\Psi_i w_i, \beta^{-1} I)` for each posterior draw of ``w``.
+
+Attributes record the model, engine, dataset, hyperparameters, engine options,
+seed, timing, the per-DoF scaling, the basis and the package versions.
 
 :meth:`FitResult.save` writes ``posterior.nc`` (netCDF through h5netcdf) and
 ``summary.json``; :func:`load` reads them back.  Both carry
@@ -32,7 +41,7 @@ from lmpromp_ppl.diagnostics.quantities import derived_quantities
 from lmpromp_ppl.errors import LmprompError
 from lmpromp_ppl.models.hyper import Hyperparameters
 
-__all__ = ["FORMAT_VERSION", "SITE_DIMS", "FitResult", "load", "site_dims", "to_json_value"]
+__all__ = ["FORMAT_VERSION", "SITE_DIMS", "FitResult", "load", "package_versions", "site_dims", "to_json_value"]
 
 FORMAT_VERSION = 1
 
@@ -52,6 +61,8 @@ SITE_DIMS: dict[str, tuple[str, ...]] = {
     "gram_eig": ("component", "latent"),
     "pred_mean": ("phase", "dof"),
     "pred_sd": ("phase", "dof"),
+    "t": ("demo", "sample"),
+    "y": ("demo", "sample", "dof"),
 }
 
 
@@ -66,6 +77,19 @@ def site_dims(name: str, ndim: int) -> tuple[str, ...]:
     if len(dims) != ndim:
         raise ValueError(f"site {name!r} has {ndim} axes, expected {SITE_DIMS[name]}")
     return dims
+
+
+def package_versions() -> dict[str, str]:
+    """Versions of lmpromp-ppl and the libraries its results depend on."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    out = {}
+    for name in ("lmpromp-ppl", "jax", "jaxlib", "numpyro", "arviz-base", "arviz-stats", "xarray", "numpy"):
+        try:
+            out[name] = version(name)
+        except PackageNotFoundError:
+            out[name] = None
+    return out
 
 
 def to_json_value(x):
@@ -120,6 +144,9 @@ class FitResult:
     optimization: dict = field(default_factory=dict)
     summary: dict = field(default_factory=dict)
     state: object = None
+    observed: dict = field(default_factory=dict)
+    options: dict = field(default_factory=dict)
+    seed: int | None = None
 
     # ---------------------------------------------------------------- draws
     def posterior_draws(self, num_draws: int = 1000, key=None) -> dict:
@@ -139,7 +166,39 @@ class FitResult:
     def elbo(self) -> float | None:
         return self.summary.get("elbo")
 
-    def to_datatree(self, num_draws: int = 1000, key=None) -> xr.DataTree:
+    def posterior_predictive(self, key=None, num_draws: int | None = None) -> np.ndarray:
+        r"""Replicated demonstrations ``(chain, draw, demo, sample, dof)`` in data units.
+
+        For each posterior draw of ``w``: :math:`y_i = \Psi_i w_i + \epsilon`,
+        :math:`\epsilon \sim N(0, \beta^{-1} I)` (standardised units, then
+        mapped back), at the observed times; NaN where ``observed_data`` is padded.
+        """
+        import jax
+
+        from lmpromp_ppl.basis import design_matrix
+
+        if not self.observed:
+            raise LmprompError("this result holds no observed data to replicate")
+        draws = self.posterior_draws()
+        w = np.asarray(draws["w"])  # (chain, draw, L, d)
+        if num_draws is not None:
+            w = w[:, :num_draws]
+        beta = np.asarray(draws["beta"])[:, : w.shape[1], None, None] if "beta" in draws else self.hyper.beta
+        t, y = np.asarray(self.observed["t"]), np.asarray(self.observed["y"])
+        key = jax.random.key(0) if key is None else key
+        noise = np.asarray(jax.random.normal(key, w.shape[:2] + y.shape))
+        out = np.full(w.shape[:2] + y.shape, np.nan)
+        for i in range(t.shape[0]):
+            valid = np.isfinite(t[i])
+            ti = t[i, valid]
+            phase = (ti - ti[0]) / (ti[-1] - ti[0])
+            psi = np.asarray(design_matrix(phase, self.num_dofs, self.num_basis, self.width))
+            mean = np.einsum("sd,cnd->cns", psi, w[:, :, i]).reshape(w.shape[:2] + (valid.sum(), self.num_dofs))
+            rep = mean + noise[:, :, i, valid] / np.sqrt(beta if np.ndim(beta) == 0 else beta[..., 0])
+            out[:, :, i, valid] = self.scaling.invert(rep)
+        return out
+
+    def to_datatree(self, num_draws: int = 1000, key=None, *, posterior_predictive: bool = False) -> xr.DataTree:
         """The result in the common DataTree layout (module docstring)."""
         draws = self.posterior_draws(num_draws, key)
         groups = {"posterior": _dataset(draws, ("chain", "draw"))}
@@ -163,6 +222,10 @@ class FitResult:
             )
         if self.point:
             groups["point_estimate"] = _dataset(self.point, ())
+        if self.observed:
+            groups["observed_data"] = _dataset(self.observed, ())
+        if posterior_predictive:
+            groups["posterior_predictive"] = _dataset({"y": self.posterior_predictive(key)}, ("chain", "draw"))
         tree = xr.DataTree.from_dict(groups)
         tree.attrs.update(self._attrs())
         return tree
@@ -179,6 +242,11 @@ class FitResult:
             "num_dofs": self.num_dofs,
             "width": self.width,
             "dof_names": json.dumps(list(self.dof_names)),
+            "engine_options": json.dumps(to_json_value(self.options)),
+            "seed": -1 if self.seed is None else int(self.seed),
+            "seconds": json.dumps(to_json_value(self.summary.get("seconds"))),
+            "compile_seconds": json.dumps(to_json_value(self.summary.get("compile_seconds"))),
+            "package_versions": json.dumps(package_versions()),
         }
 
     def summary_dict(self) -> dict:
@@ -254,6 +322,9 @@ def load(path: str | Path) -> FitResult:
         point=group("point_estimate"),
         sample_stats=group("sample_stats"),
         optimization=group("optimization"),
+        observed=group("observed_data"),
+        options=json.loads(attrs.get("engine_options", "{}")),
+        seed=None if int(attrs.get("seed", -1)) < 0 else int(attrs["seed"]),
         summary={k: v for k, v in summary.items() if k not in ("format_version",)},
     )
     return result
