@@ -1,0 +1,37 @@
+"""``lmpromp reproduce``: the thesis's experiments (Sec. 5) on LASA, GunPoint and synthetic data."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from lmpromp_ppl.cli import app
+from lmpromp_ppl.cli._common import prepare_out_dir
+
+__all__ = ["reproduce_command"]
+
+
+@app.command("reproduce")
+def reproduce_command(
+    name: str = typer.Argument(
+        ..., help="priors, noise, sparsity, beta, c0, semantics, bimodal, latent-analysis, or all."
+    ),
+    out: Path = typer.Option(..., "--out", help="Output directory (JSON, markdown, PNG, claims.md)."),
+    quick: bool = typer.Option(False, "--quick", help="Tiny sizes (seconds per experiment), for tests."),
+    seed: int = typer.Option(0, "--seed", help="Seed for every random choice."),
+    force: bool = typer.Option(False, "--force", help="Write into an existing non-empty directory."),
+    quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
+) -> None:
+    """Run a thesis experiment and write its figure, numbers (JSON) and report section; rebuild claims.md."""
+    from lmpromp_ppl.errors import LmprompError
+    from lmpromp_ppl.reproduce import EXPERIMENTS, Context, run_many
+
+    names = list(EXPERIMENTS) if name == "all" else [name]
+    if name != "all" and name not in EXPERIMENTS:
+        raise LmprompError(f"unknown experiment {name!r}; choose from {', '.join(EXPERIMENTS)} or all")
+    target = prepare_out_dir(out, force)
+    context = Context(out=target, quick=quick, seed=seed, progress=not quiet)
+    run_many(names, context, echo=None if quiet else typer.echo)
+    if not quiet:
+        typer.echo(f"wrote {target / 'claims.md'} and {target / 'report.md'}")
