@@ -1,0 +1,182 @@
+r"""Hyperparameter sweeps: a grid of CAVI fits scored on held-out demonstrations.
+
+A sweep fits the single-type LMProMP by CAVI (thesis Sec. 4.1.1) at every
+point of a grid over hyperparameters (any field of
+:class:`~lmpromp_ppl.models.hyper.Hyperparameters`, e.g. ``beta``, ``c0``,
+``latent_dim``) and the number of basis functions ``num_basis`` (J), on the
+training part of a dataset, and scores it on the held-out part.  Each grid
+point is one task of :func:`lmpromp_ppl.calibration.runner.run_tasks`.
+
+The split is a seeded random permutation of the demonstrations; each DoF is
+standardised on the training demonstrations only, and the test
+demonstrations use that scaling.  Held-out metrics, with the plug-in
+posterior means :math:`\bar b, \bar M, \bar\alpha` of q:
+
+* ``lpd``: log predictive density of each held-out demonstration under the
+  marginal of eq. 4.1 with w and h integrated out,
+  :math:`\mathbf y_i \sim \mathcal N(\Psi_i\bar b,\ \beta^{-1}I + \Psi_i(\bar\alpha^{-1}I
+  + \gamma^{-1}\bar M\bar M^T)\Psi_i^T)`, per observed value (higher is better);
+* ``rmse``: root mean squared error of the predictive mean :math:`\Psi_i \bar b`
+  (standardised units, lower is better).
+
+``beta`` is fixed in each fit, so ``lpd`` compares the noise levels of a beta
+grid fairly (the density includes the noise term).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from lmpromp_ppl.errors import LmprompError
+
+__all__ = ["METRICS", "parse_grid", "split_demos", "heldout_scores", "sweep_task", "sweep_tasks", "sweep_table"]
+
+METRICS = {"lpd": "max", "rmse": "min"}
+_GRID_INTS = {"latent_dim", "num_basis"}
+
+
+def parse_grid(items: Sequence[str]) -> dict[str, list]:
+    """Parse ``["beta=50,100", "latent_dim=1,2"]`` into ``{"beta": [50.0, 100.0], "latent_dim": [1, 2]}``.
+
+    Names are hyperparameter fields (numbers) or ``num_basis``; ``latent_dim``
+    and ``num_basis`` are integers.
+    """
+    from lmpromp_ppl.models.hyper import Hyperparameters
+
+    allowed = {f for f, v in Hyperparameters().to_dict().items() if isinstance(v, (int, float)) and not isinstance(v, bool)}
+    allowed = (allowed - {"num_components"}) | {"num_basis"}
+    grid: dict[str, list] = {}
+    for item in items:
+        name, sep, values = item.partition("=")
+        name = name.strip()
+        if not sep or not values.strip():
+            raise LmprompError(f"grid entry {item!r} must look like NAME=V1,V2")
+        if name not in allowed:
+            raise LmprompError(f"unknown grid parameter {name!r}; choose from {sorted(allowed)}")
+        if name in grid:
+            raise LmprompError(f"grid parameter {name!r} given twice")
+        parsed = []
+        for text in values.split(","):
+            try:
+                value = float(text)
+            except ValueError:
+                raise LmprompError(f"grid value {text!r} of {name} is not a number") from None
+            if name in _GRID_INTS:
+                if value != int(value):
+                    raise LmprompError(f"grid values of {name} must be integers, got {text!r}")
+                value = int(value)
+            parsed.append(value)
+        grid[name] = parsed
+    if not grid:
+        raise LmprompError("the grid is empty; give at least one --grid NAME=V1,V2")
+    return grid
+
+
+def split_demos(num_demos: int, test_fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Seeded random split of demonstration indices into (train, test), both sorted and non-empty."""
+    if not 0.0 < test_fraction < 1.0:
+        raise LmprompError(f"test_fraction must lie in (0, 1), got {test_fraction!r}")
+    num_test = int(round(test_fraction * num_demos))
+    if num_test < 1 or num_test > num_demos - 2:
+        raise LmprompError(
+            f"cannot hold out {test_fraction:g} of {num_demos} demonstrations (need >= 1 test and >= 2 train)"
+        )
+    order = np.random.default_rng(seed).permutation(num_demos)
+    return np.sort(order[num_test:]), np.sort(order[:num_test])
+
+
+def heldout_scores(point: Mapping[str, Any], data, hyper) -> dict[str, float]:
+    """``lpd`` (per observed value) and ``rmse`` of held-out ``data`` (ModelData) under the plug-in marginal."""
+    b = np.asarray(point["b"])
+    M = np.asarray(point["M"])
+    alpha = float(point["alpha"])
+    weight_cov = np.eye(b.shape[0]) / alpha + M @ M.T / hyper.gamma
+    total_lpd, total_sq, total_n = 0.0, 0.0, 0
+    for psi, y, mask in zip(*(np.asarray(a) for a in data)):
+        keep = mask > 0
+        psi, y = psi[keep], y[keep]
+        mean = psi @ b
+        cov = np.eye(y.shape[0]) / hyper.beta + psi @ weight_cov @ psi.T
+        chol = np.linalg.cholesky(cov)
+        z = np.linalg.solve(chol, y - mean)
+        total_lpd += -0.5 * (z @ z) - np.sum(np.log(np.diag(chol))) - 0.5 * y.shape[0] * math.log(2 * math.pi)
+        total_sq += float(np.sum((y - mean) ** 2))
+        total_n += y.shape[0]
+    return {"lpd": total_lpd / total_n, "rmse": math.sqrt(total_sq / total_n)}
+
+
+def sweep_task(spec: Mapping[str, Any]) -> dict[str, Any]:
+    """Fit one grid point and score it: the unit of work of the sweep.
+
+    Parameters
+    ----------
+    spec : ``{"dataset": str, "params": {name: value}, "preset": str,
+        "num_basis": int, "test_fraction": float, "seed": int, "options": {...}}``
+        (``params`` may override ``num_basis``; ``options`` go to
+        :func:`~lmpromp_ppl.inference.cavi.fit_cavi`)
+
+    Returns
+    -------
+    ``{"params", "heldout": {"lpd", "rmse"}, "elbo", "converged", "iterations", "seconds"}``
+    """
+    import jax
+
+    from lmpromp_ppl.data import load_dataset
+    from lmpromp_ppl.data.core import model_data, standardize
+    from lmpromp_ppl.inference.cavi import fit_cavi, point_estimate
+    from lmpromp_ppl.models.hyper import preset
+
+    params = dict(spec["params"])
+    num_basis = int(params.pop("num_basis", spec.get("num_basis", 10)))
+    hyper = preset(spec.get("preset", "thesis"), **params)
+    demos = load_dataset(spec["dataset"])
+    train_idx, test_idx = split_demos(demos.num_demos, float(spec.get("test_fraction", 0.25)), int(spec.get("seed", 0)))
+    train, scaling = standardize(demos.subset(train_idx))
+    test, _ = standardize(demos.subset(test_idx), scaling)
+    fit = fit_cavi(model_data(train, num_basis), hyper, jax.random.key(int(spec.get("seed", 0))),
+                   **dict(spec.get("options") or {}))
+    scores = heldout_scores(point_estimate(fit.state), model_data(test, num_basis), hyper)
+    return {"params": dict(spec["params"]), "heldout": scores, "elbo": fit.elbo, "converged": fit.converged,
+            "iterations": fit.iterations, "seconds": fit.seconds, "num_train": int(train_idx.size),
+            "num_test": int(test_idx.size)}
+
+
+def sweep_tasks(
+    dataset: str,
+    grid: Mapping[str, Sequence],
+    *,
+    preset_name: str = "thesis",
+    num_basis: int = 10,
+    test_fraction: float = 0.25,
+    seed: int = 0,
+    options: Mapping[str, Any] | None = None,
+) -> dict[str, dict[str, Any]]:
+    """Task specifications (task id -> spec) for every point of the grid's Cartesian product."""
+    from lmpromp_ppl.models.hyper import preset
+
+    preset(preset_name)  # validates the name
+    names = list(grid)
+    tasks = {}
+    for values in itertools.product(*(grid[n] for n in names)):
+        params = dict(zip(names, values))
+        task_id = "sweep-" + "-".join(f"{n}={v:g}" for n, v in params.items())
+        tasks[task_id] = {"kind": "sweep", "dataset": dataset, "params": params, "preset": preset_name,
+                          "num_basis": int(num_basis), "test_fraction": float(test_fraction), "seed": int(seed),
+                          "options": dict(options or {})}
+    return tasks
+
+
+def sweep_table(records: Mapping[str, Mapping[str, Any]], metric: str = "lpd") -> list[dict[str, Any]]:
+    """Rows of the finished grid points, best ``metric`` first (failed points are left out)."""
+    if metric not in METRICS:
+        raise LmprompError(f"unknown metric {metric!r}; choose from {sorted(METRICS)}")
+    rows = [{"task_id": task_id, **r["result"]["params"], **r["result"]["heldout"],
+             "elbo": r["result"]["elbo"], "converged": r["result"]["converged"]}
+            for task_id, r in records.items() if r.get("status") == "ok"]
+    sign = -1.0 if METRICS[metric] == "max" else 1.0
+    return sorted(rows, key=lambda row: sign * row[metric])
