@@ -28,5 +28,17 @@ test: install-test
 test-slow: install-test
 	$(PY) -m pytest -q -m slow
 
+# render the teaching notebooks with outputs into docs/notebooks/ (notebooks/README.md)
+.PHONY: notebooks
+notebooks: install-test
+	$(PY) scripts/render_notebooks.py
+
+# regenerate the committed example reports under reports/compare/ (a few minutes each)
+.PHONY: reports
+reports: install
+	$(VENV)/bin/lmpromp compare "synthetic:latent?L=20&D=2&J=10&V=3&seed=0" --latent-dim 3 --draws 500 --out reports/compare/synthetic-latent --force
+	$(VENV)/bin/lmpromp compare "lasa:GShape?every=20" --latent-dim 2 --draws 500 --out reports/compare/lasa-gshape --force
+	$(VENV)/bin/lmpromp compare gunpoint:train --latent-dim 2 --draws 500 --out reports/compare/gunpoint --force
+
 clean:
 	rm -rf $(VENV) $(DEMO_OUT)
