@@ -26,7 +26,7 @@ engine and writes one JSON document (layout in ``benchmarks/README.md``):
   smallest bulk ESS over the identifiable quantities (``b``, ``alpha``, sorted
   ``lam`` and the eigenvalues of :math:`MM^T`) and the time per effective draw;
 * **batch fitting**: CAVI vectorised over many datasets with ``jax.vmap``
-  (:func:`fit_cavi_batch`, initialisation included);
+  (:func:`lmpromp_ppl.inference.batch.fit_cavi_batched`, initialisation included);
 * **ProMP baseline**: the classical ProMP estimate
   (:func:`lmpromp_ppl.models.promp.classical_promp`) against
   ``movement_primitives``' ``ProMP.imitate`` on LASA (optional ``bench`` extra);
@@ -49,8 +49,7 @@ import sys
 import time
 import warnings
 from dataclasses import dataclass
-from importlib import metadata
-from typing import Any, Callable, NamedTuple
+from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
@@ -62,7 +61,9 @@ from lmpromp_ppl.data.core import Demonstrations, ModelData, model_data, standar
 from lmpromp_ppl.data.synthetic import latent_manifold
 from lmpromp_ppl.errors import ConvergenceWarning, DataError, LmprompError
 from lmpromp_ppl.inference import cavi
+from lmpromp_ppl.inference.batch import fit_cavi_batched
 from lmpromp_ppl.models.hyper import Hyperparameters, preset
+from lmpromp_ppl.results import package_version, to_json_value
 
 __all__ = [
     "RowSpec",
@@ -79,9 +80,6 @@ __all__ = [
     "bench_cavi",
     "bench_svi",
     "bench_nuts",
-    "BatchFit",
-    "init_state_batched",
-    "fit_cavi_batch",
     "bench_batch",
     "bench_promp_baseline",
     "evaluate_goals",
@@ -296,13 +294,6 @@ def matmul_rate(n: int = 2000, repeats: int = 5) -> float:
     return 2.0 * n**3 / best
 
 
-def _version(package: str) -> str | None:
-    try:
-        return metadata.version(package)
-    except metadata.PackageNotFoundError:
-        return None
-
-
 def _cpu_model() -> str:
     try:
         with open("/proc/cpuinfo") as f:
@@ -327,7 +318,7 @@ def machine_info() -> dict[str, Any]:
         "xla_flags": os.environ.get("XLA_FLAGS"),
         "versions": {
             "python": platform.python_version(),
-            **{name: _version(name) for name in
+            **{name: package_version(name) for name in
                ("lmpromp-ppl", "jax", "jaxlib", "numpyro", "numpy", "scikit-learn", "movement_primitives")},
         },
     }
@@ -574,121 +565,14 @@ def bench_nuts(md: ModelData, hyper: Hyperparameters, key: Array, settings: Nuts
 
 
 # --------------------------------------------------------------------------- batch
-class BatchFit(NamedTuple):
-    """Result of :func:`fit_cavi_batch` (leading axis: dataset).
-
-    Attributes
-    ----------
-    state : batched :class:`~lmpromp_ppl.inference.cavi.CaviState`
-    elbo : (B,) final ELBO
-    iterations : (B,) sweeps run
-    converged : (B,) relative ELBO change fell below ``tol``
-    seconds : initialisation and fit, excluding compilation
-    compile_seconds : compilation time
-    """
-
-    state: cavi.CaviState
-    elbo: np.ndarray
-    iterations: np.ndarray
-    converged: np.ndarray
-    seconds: float
-    compile_seconds: float
-
-
-def init_state_batched(data: cavi.CaviData, hyper: cavi.HyperArrays, latent_dim: int,
-                       ridge: float = 1e-4) -> cavi.CaviState:
-    """The thesis initialisation of :func:`lmpromp_ppl.inference.init.init_state` in pure JAX.
-
-    Same steps (ridge weights, PCA for b, M and h, precisions at their
-    maximum-likelihood values given the means, covariances by their updates),
-    with the principal directions from ``eigh`` of the sample covariance instead
-    of scikit-learn, so that it can be ``jax.vmap``-ed over datasets.  The
-    signs of the principal directions may differ from scikit-learn's, a
-    symmetry of the model (:math:`m_v, h_{v} \\to -m_v, -h_{v}`).  Shared-design
-    data (:class:`~lmpromp_ppl.inference.cavi.SharedGram`) only.
-    """
-    from lmpromp_ppl.inference.init import _covariances
-
-    gram = data.gram
-    if not isinstance(gram, cavi.SharedGram):
-        raise LmprompError("init_state_batched needs shared-design data (SharedGram)")
-    rho = ridge * jnp.mean(gram.eigvals)
-    W = ((data.psi_t_y @ gram.basis) / (gram.eigvals + rho)) @ gram.basis.T
-    L, d = W.shape
-    b = jnp.mean(W, axis=0)
-    centred = W - b
-    eigvals, vectors = jnp.linalg.eigh(centred.T @ centred / (L - 1))
-    variance = eigvals[::-1][:latent_dim]
-    components = vectors[:, ::-1][:, :latent_dim]
-    variance = jnp.maximum(variance, 1e-10 * jnp.maximum(variance.max(), 1e-300))
-    scale = jnp.sqrt(variance)
-    M = components * scale
-    h = (centred @ components) / scale
-    residual = centred - h @ M.T
-    floor = 1e-3 * jnp.mean(centred**2) + 1e-12
-    alpha = 1.0 / jnp.maximum(jnp.mean(residual**2), floor)
-    col_sq = jnp.sum(M**2, axis=0)
-    lam = d / jnp.maximum(col_sq, 1e-8 * col_sq.max() + 1e-300)
-    alpha_shape = hyper.a0 + 0.5 * d * L
-    lam_shape = jnp.full((latent_dim,), hyper.c0 + 0.5 * d)
-    h_cov, M_var, w_cov = _covariances(data, hyper.beta, hyper.gamma, alpha, lam, b, M, h)
-    return cavi.CaviState(
-        w_mean=W, w_cov=w_cov, h_mean=h, h_cov=h_cov, b_mean=b,
-        b_var=1.0 / (L * alpha + hyper.lambda0), M_mean=M, M_var=M_var,
-        alpha_shape=alpha_shape, alpha_rate=alpha_shape / alpha,
-        lam_shape=lam_shape, lam_rate=lam_shape / lam,
-    )
-
-
-def _batch_program(data, hyper, tol, limit, latent_dim: int, buffer: int):
-    def one(psi_t_y, y_sq, num_obs):
-        single = cavi.CaviData(psi_t_y, y_sq, num_obs, data.gram)
-        state = init_state_batched(single, hyper, latent_dim)
-        result = cavi._iterate(state, single, hyper, tol, limit, jnp.asarray(-jnp.inf), buffer)
-        final = jnp.take(result.elbo_trace, jnp.maximum(result.iterations - 1, 0))
-        return result.state, final, result.iterations, result.converged
-
-    return jax.vmap(one)(data.psi_t_y, data.y_sq, data.num_obs)
-
-
-_batch_jit = jax.jit(_batch_program, static_argnames=("latent_dim", "buffer"))
-
-
-def fit_cavi_batch(data: cavi.CaviData, hyper: Hyperparameters, *, tol: float = 1e-8,
-                   max_iter: int = 2000) -> BatchFit:
-    """CAVI on many datasets at once: ``jax.vmap`` of initialisation and the compiled sweep loop.
-
-    Parameters
-    ----------
-    data : statistics with a leading dataset axis on ``psi_t_y`` (B, L, d),
-        ``y_sq`` (B, L) and ``num_obs`` (B, L), and one shared design
-        (:class:`~lmpromp_ppl.inference.cavi.SharedGram`, no dataset axis)
-    hyper : hyperparameters (single component, fixed beta)
-    tol, max_iter : stopping rule of :func:`lmpromp_ppl.inference.cavi.run`;
-        a vmapped ``while_loop`` runs until every dataset has stopped, the
-        datasets that stopped earlier keep their state
-
-    Returns
-    -------
-    BatchFit
-    """
-    if hyper.num_components != 1 or hyper.learn_beta:
-        raise LmprompError("fit_cavi_batch fits the single-type model with a fixed beta")
-    if not isinstance(data.gram, cavi.SharedGram) or data.psi_t_y.ndim != 3:
-        raise LmprompError("fit_cavi_batch needs psi_t_y of shape (B, L, d) and a SharedGram")
-    hyper.validate_for(data.psi_t_y.shape[2], data.psi_t_y.shape[1])
-    args = (data, cavi.hyper_arrays(hyper), jnp.asarray(tol, jnp.float64), jnp.asarray(max_iter, jnp.int32))
-    start = time.perf_counter()
-    compiled = _batch_jit.lower(*args, latent_dim=hyper.latent_dim, buffer=int(max_iter)).compile()
-    compile_s = time.perf_counter() - start
-    start = time.perf_counter()
-    state, elbo, iterations, converged = jax.block_until_ready(compiled(*args))
-    seconds = time.perf_counter() - start
-    return BatchFit(state, np.asarray(elbo), np.asarray(iterations), np.asarray(converged), seconds, compile_s)
-
-
 def bench_batch(row: RowSpec, size: int, config: BenchConfig) -> dict:
-    """Fit ``size`` datasets of the row's size (seeds ``seed .. seed + size - 1``) with :func:`fit_cavi_batch`."""
+    """Fit ``size`` datasets of the row's size (seeds ``seed .. seed + size - 1``) in one batch.
+
+    The datasets share one time grid, so they go to
+    :func:`lmpromp_ppl.inference.batch.fit_cavi_batched` as one stacked
+    :class:`~lmpromp_ppl.inference.cavi.CaviData`: the pure-JAX thesis
+    initialisation and the sweeps run in one vmapped program.
+    """
     datasets = [
         shared_cavi_data(row_demonstrations(dataclasses.replace(row, seed=row.seed + s)), row.J)
         for s in range(size)
@@ -699,7 +583,7 @@ def bench_batch(row: RowSpec, size: int, config: BenchConfig) -> dict:
         num_obs=jnp.stack([x.num_obs for x in datasets]),
         gram=datasets[0].gram,
     )
-    fit = fit_cavi_batch(data, _hyper(row), tol=config.tol, max_iter=config.max_iter)
+    fit = fit_cavi_batched(data, _hyper(row), tol=config.tol, max_iter=config.max_iter)
     return {
         "datasets": size,
         "L": row.L, "D": row.D, "J": row.J, "V": row.V, "K": row.K,
@@ -711,8 +595,8 @@ def bench_batch(row: RowSpec, size: int, config: BenchConfig) -> dict:
         "converged_fraction": float(fit.converged.mean()),
         "tol": config.tol,
         "max_iter": config.max_iter,
-        "method": "jax.vmap over datasets of a pure-JAX thesis initialisation and cavi's "
-                  "compiled while_loop; fit_s includes initialisation",
+        "method": "jax.vmap over datasets of a pure-JAX thesis initialisation and the CAVI "
+                  "while_loop (inference.batch.fit_cavi_batched); fit_s includes initialisation",
     }
 
 
@@ -768,7 +652,7 @@ def bench_promp_baseline(dataset: str, num_basis: int) -> dict:
     out["movement_primitives"] = {
         "fit_s": theirs_s,
         "timing": "one call (pure numpy, nothing to compile)",
-        "version": _version("movement_primitives"),
+        "version": package_version("movement_primitives"),
         "settings": "ProMP.imitate: EM of Lazaric & Ghavamzadeh (2010) with defaults n_iter=1000, "
                     "min_delta=1e-5, temporally differenced noise (gamma 0.7), normalised RBFs "
                     "with overlap 0.7",
@@ -922,7 +806,7 @@ def run_benchmark(config: BenchConfig, device: str = "cpu", gpu_note: str = "",
 
     def document(complete: bool) -> dict:
         machine["load_average_now"] = list(os.getloadavg()) if hasattr(os, "getloadavg") else None
-        return _json_safe({
+        return to_json_value({
             "format": "lmpromp-bench/1",
             "complete": complete,
             "created": started.isoformat(timespec="seconds"),
@@ -957,21 +841,6 @@ def run_benchmark(config: BenchConfig, device: str = "cpu", gpu_note: str = "",
     baseline = (bench_promp_baseline(config.baseline_dataset, config.baseline_num_basis)
                 if config.baseline_dataset else _not_run("not requested"))
     return document(True)
-
-
-def _json_safe(value: Any) -> Any:
-    """Plain JSON types; NaN and infinities become None (null)."""
-    if isinstance(value, dict):
-        return {str(k): _json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
-    if isinstance(value, (bool, np.bool_)):
-        return bool(value)
-    if isinstance(value, (int, np.integer)):
-        return int(value)
-    if isinstance(value, (float, np.floating)):
-        return float(value) if math.isfinite(value) else None
-    return value
 
 
 # --------------------------------------------------------------------------- table

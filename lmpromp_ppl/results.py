@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -41,7 +42,10 @@ from lmpromp_ppl.diagnostics.quantities import derived_quantities
 from lmpromp_ppl.errors import LmprompError
 from lmpromp_ppl.models.hyper import Hyperparameters
 
-__all__ = ["FORMAT_VERSION", "SITE_DIMS", "FitResult", "load", "package_versions", "site_dims", "to_json_value"]
+__all__ = [
+    "FORMAT_VERSION", "SITE_DIMS", "FitResult", "load", "package_version", "package_versions", "site_dims",
+    "to_json_value",
+]
 
 FORMAT_VERSION = 1
 
@@ -79,33 +83,32 @@ def site_dims(name: str, ndim: int) -> tuple[str, ...]:
     return dims
 
 
-def package_versions() -> dict[str, str]:
-    """Versions of lmpromp-ppl and the libraries its results depend on."""
+def package_version(name: str) -> str | None:
+    """Installed version of a distribution package, or ``None`` when it is not installed."""
     from importlib.metadata import PackageNotFoundError, version
 
-    out = {}
-    for name in ("lmpromp-ppl", "jax", "jaxlib", "numpyro", "arviz-base", "arviz-stats", "xarray", "numpy"):
-        try:
-            out[name] = version(name)
-        except PackageNotFoundError:
-            out[name] = None
-    return out
+    try:
+        return version(name)
+    except PackageNotFoundError:
+        return None
+
+
+def package_versions() -> dict[str, str | None]:
+    """Versions of lmpromp-ppl and the libraries its results depend on."""
+    names = ("lmpromp-ppl", "jax", "jaxlib", "numpyro", "arviz-base", "arviz-stats", "xarray", "numpy")
+    return {name: package_version(name) for name in names}
 
 
 def to_json_value(x):
-    """JSON-safe value: numpy scalars and arrays to Python, NaN/inf to ``None``."""
-    if isinstance(x, dict):
+    """JSON-safe value, recursively: mappings to dicts with string keys, tuples to lists,
+    numpy and jax arrays and scalars to Python values, NaN and infinities to ``None``."""
+    if isinstance(x, Mapping):
         return {str(k): to_json_value(v) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
         return [to_json_value(v) for v in x]
-    if isinstance(x, np.ndarray):
+    if hasattr(x, "tolist") and not isinstance(x, (str, bytes)):  # numpy / jax arrays and scalars
         return to_json_value(x.tolist())
-    if isinstance(x, (np.bool_, bool)):
-        return bool(x)
-    if isinstance(x, (np.integer,)):
-        return int(x)
-    if isinstance(x, (float, np.floating)):
-        x = float(x)
+    if isinstance(x, float):
         return x if math.isfinite(x) else None
     return x
 

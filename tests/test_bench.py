@@ -15,6 +15,7 @@ from lmpromp_ppl.cli import main
 from lmpromp_ppl.data import Demonstrations, model_data
 from lmpromp_ppl.errors import DataError
 from lmpromp_ppl.inference import cavi
+from lmpromp_ppl.inference.batch import fit_cavi_batched
 
 TINY = bench.RowSpec("default", L=6, D=1, J=6, V=2, T=20)
 BASELINE = "lasa:GShape?every=50"
@@ -67,7 +68,7 @@ def test_batched_cavi_matches_single_fits():
         np.stack([s.num_obs for s in singles]), singles[0].gram,
     )
     hyper = bench._hyper(rows[0])
-    batch = bench.fit_cavi_batch(stacked, hyper, tol=1e-10, max_iter=3000)
+    batch = fit_cavi_batched(stacked, hyper, tol=1e-10, max_iter=3000)
     assert batch.converged.all()
     for s, d in enumerate(demos):
         fit = cavi.fit_cavi(model_data(d, 6), hyper, jax.random.key(0), tol=1e-10, max_iter=3000)

@@ -21,8 +21,8 @@ from typing import Any
 
 import numpy as np
 
-from lmpromp_ppl.calibration.runner import json_safe
 from lmpromp_ppl.calibration.sbc import collect, pit_values, summarize
+from lmpromp_ppl.results import to_json_value
 
 __all__ = ["plot_pit_ecdf", "uniformity_markdown", "write_sbc_report"]
 
@@ -96,7 +96,7 @@ def write_sbc_report(
                               f"SBC PIT-ECDF: {model} / {engine} (R = {len(entry['indices'])})")
     vsbc = {r["result"]["model"]: {"ks_pvalues": r["result"]["ks_pvalues"], "ks_stats": r["result"]["ks_stats"]}
             for r in ok if r["spec"].get("kind") == "vsbc_numpyro"}
-    content = json_safe({
+    content = to_json_value({
         "problem": dict(problems),
         "num_draws": int(num_draws),
         "engines": {f"{m}/{e}": {"replicates": int(len(v["indices"])), "seconds": v["seconds"],

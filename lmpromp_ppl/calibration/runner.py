@@ -19,7 +19,6 @@ The files are written by the client, so workers need no shared file system.
 from __future__ import annotations
 
 import json
-import math
 import os
 import time
 import traceback
@@ -28,8 +27,9 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 from lmpromp_ppl.errors import LmprompError
+from lmpromp_ppl.results import to_json_value
 
-__all__ = ["TASK_KINDS", "TaskRun", "execute", "task_path", "load_records", "run_tasks", "json_safe"]
+__all__ = ["TASK_KINDS", "TaskRun", "execute", "task_path", "load_records", "run_tasks"]
 
 
 def _sbc(spec: Mapping[str, Any]) -> dict:
@@ -68,19 +68,6 @@ TASK_KINDS: dict[str, Callable[[Mapping[str, Any]], dict]] = {
 }
 
 
-def json_safe(value: Any) -> Any:
-    """Replace NaN and infinities by ``None`` (JSON ``null``) and numpy scalars by Python ones, recursively."""
-    if isinstance(value, Mapping):
-        return {str(k): json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [json_safe(v) for v in value]
-    if hasattr(value, "tolist") and not isinstance(value, (str, bytes)):
-        return json_safe(value.tolist())
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
-
-
 def execute(task_id: str, spec: Mapping[str, Any]) -> dict[str, Any]:
     """Run one task; returns ``{"task_id", "status": "ok"|"error", "result"|"error", "traceback", "seconds", "spec"}``."""
     start = time.perf_counter()
@@ -96,7 +83,7 @@ def execute(task_id: str, spec: Mapping[str, Any]) -> dict[str, Any]:
         record["error"] = f"{type(exc).__name__}: {exc}"
         record["traceback"] = traceback.format_exc()
     record["seconds"] = time.perf_counter() - start
-    return json_safe(record)
+    return to_json_value(record)
 
 
 def task_path(out_dir: Path, task_id: str) -> Path:
@@ -179,7 +166,7 @@ def run_tasks(
     for task_id in tasks:
         task_path(out_dir, task_id)  # validates the id
         old = previous.get(task_id)
-        if old is not None and old.get("status") == "ok" and old.get("spec") == json_safe(dict(tasks[task_id])):
+        if old is not None and old.get("status") == "ok" and old.get("spec") == to_json_value(dict(tasks[task_id])):
             records[task_id] = old
             reused.append(task_id)
     pending = [task_id for task_id in tasks if task_id not in records]

@@ -156,7 +156,8 @@ def sweep_command(
     quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
 ) -> None:
     """CAVI fits over a hyperparameter grid, scored on held-out demonstrations, through dask.distributed."""
-    from lmpromp_ppl.calibration.runner import json_safe, run_tasks
+    from lmpromp_ppl.calibration.runner import run_tasks
+    from lmpromp_ppl.results import to_json_value
     from lmpromp_ppl.calibration.sweep import METRICS, parse_grid, sweep_table, sweep_tasks
     from lmpromp_ppl.data import load_dataset
 
@@ -170,7 +171,7 @@ def sweep_command(
     rows = sweep_table(run.records, metric)
     content = {"dataset": dataset, "metric": metric, "preset": preset_name, "rows": rows,
                "failed": {t: run.records[t].get("error") for t in run.failed}}
-    (out_dir / "sweep.json").write_text(json.dumps(json_safe(content), indent=1, allow_nan=False))
+    (out_dir / "sweep.json").write_text(json.dumps(to_json_value(content), indent=1, allow_nan=False))
     names = list(parse_grid(grid))
     lines = ["| " + " | ".join(names + ["lpd", "rmse", "converged"]) + " |",
              "|" + "---|" * (len(names) + 3)]

@@ -1,16 +1,26 @@
-r"""CAVI replicates as one ``jax.vmap``-ed fit over a leading dataset axis.
+r"""CAVI fitted to many datasets of one shape as one ``jax.vmap``-ed fit over a leading dataset axis.
 
-Simulation-based calibration fits the same model to hundreds of simulated
-datasets of one shape.  :func:`fit_cavi_batched` initialises every replicate
-with the thesis's start (ridge regression + PCA, Sec. 4.1.1,
-:func:`lmpromp_ppl.inference.init.init_state`; NumPy and scikit-learn, so one
-replicate at a time), stacks the states and runs the sweeps of
-:func:`lmpromp_ppl.inference.cavi.step` (the updates of eq. 4.3, App. B.1) for
-all replicates in one compiled, vectorised ``lax.while_loop``.  Under
-``vmap`` the loop runs until every replicate has met its own tolerance; a
-replicate that has converged keeps its state (``while_loop``'s batched
-predicate selects the old carry), so each replicate's result is the one
-:func:`lmpromp_ppl.inference.cavi.fit_cavi` would return for it (one start).
+Simulation-based calibration and the batch row of ``lmpromp bench`` fit the
+same model to hundreds of datasets of one shape.  :func:`fit_cavi_batched`
+runs the sweeps of :func:`lmpromp_ppl.inference.cavi.step` (the updates of
+eq. 4.3, App. B.1) for all datasets in one compiled, vectorised
+``lax.while_loop``.  It takes either
+
+* a sequence of :class:`~lmpromp_ppl.data.core.ModelData`: each replicate
+  starts at the thesis's initialisation (ridge regression + PCA, Sec. 4.1.1,
+  :func:`lmpromp_ppl.inference.init.init_state`; NumPy and scikit-learn, so one
+  replicate at a time, before the compiled loop), so each replicate's result
+  is the one :func:`lmpromp_ppl.inference.cavi.fit_cavi` returns for it (one
+  start); or
+* one stacked :class:`~lmpromp_ppl.inference.cavi.CaviData` whose datasets
+  share one design (a :class:`~lmpromp_ppl.inference.cavi.SharedGram` without
+  dataset axis): the same initialisation in pure JAX
+  (:func:`lmpromp_ppl.inference.init.init_state_jax`) runs inside the
+  compiled, vmapped program, so thousands of datasets need no Python loop.
+
+Under ``vmap`` the loop runs until every replicate has met its own tolerance;
+a replicate that has converged keeps its state (``while_loop``'s batched
+predicate selects the old carry).
 
 Why not :func:`lmpromp_ppl.inference.cavi.run`: it calls an ahead-of-time
 compiled executable, which cannot be traced by ``vmap``; the loop here has
@@ -23,6 +33,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Sequence
+from functools import partial
 from typing import NamedTuple
 
 import jax
@@ -34,6 +45,7 @@ from lmpromp_ppl.data.core import ModelData
 from lmpromp_ppl.errors import DataError, LmprompError
 from lmpromp_ppl.inference import cavi
 from lmpromp_ppl.inference.cavi import CaviState, HyperArrays
+from lmpromp_ppl.inference.init import init_state, init_state_jax
 from lmpromp_ppl.models.hyper import Hyperparameters
 
 __all__ = ["BatchedCaviFit", "fit_cavi_batched", "replicate_state", "sample_q_batched"]
@@ -49,7 +61,9 @@ class BatchedCaviFit(NamedTuple):
     elbo : (R,) final ELBO of each replicate
     iterations : (R,) sweeps run by each replicate
     converged : (R,) whether each replicate met the tolerance
-    seconds : wall time of the batched loop, excluding compilation
+    seconds : wall time of the compiled batched program, excluding compilation
+        (it includes the initialisation for stacked ``CaviData``, which is
+        initialised inside the program)
     compile_seconds : compilation time (0 when already compiled in this process)
     """
 
@@ -78,7 +92,23 @@ def _iterate_one(state: CaviState, data: cavi.CaviData, hyper: HyperArrays, tol:
     return jax.lax.while_loop(cond, body, carry)
 
 
-_batched_iterate = jax.jit(jax.vmap(_iterate_one, in_axes=(0, 0, None, None, None)))
+@partial(jax.jit, static_argnames=("latent_dim",))
+def _batched_program(states, data, hyper, tol, max_iter, latent_dim: int | None):
+    """vmap of (initialisation when ``states`` is None, then :func:`_iterate_one`) over the datasets.
+
+    ``latent_dim`` is None when ``states`` are given (one per dataset, as is
+    ``data``); otherwise ``data`` holds stacked statistics with one unbatched
+    ``SharedGram`` and each dataset starts at :func:`init_state_jax`.
+    """
+    if states is None:
+        def one(psi_t_y, y_sq, num_obs):
+            single = cavi.CaviData(psi_t_y, y_sq, num_obs, data.gram)
+            return _iterate_one(init_state_jax(single, hyper, latent_dim), single, hyper, tol, max_iter)
+
+        return jax.vmap(one)(data.psi_t_y, data.y_sq, data.num_obs)
+    return jax.vmap(_iterate_one, in_axes=(0, 0, None, None, None))(states, data, hyper, tol, max_iter)
+
+
 _COMPILED: dict = {}
 
 
@@ -86,19 +116,57 @@ def _stack(trees: Sequence) -> object:
     return jax.tree.map(lambda *leaves: jnp.stack(leaves), *trees)
 
 
+def _prepare_datasets(datasets: Sequence[ModelData], hyper: Hyperparameters):
+    """(initial states, data), both stacked over the replicates, from R ModelData (NumPy initialisation)."""
+    datasets = list(datasets)
+    if not datasets:
+        raise DataError("fit_cavi_batched needs at least one dataset")
+    if not all(isinstance(d, ModelData) for d in datasets):
+        raise DataError("fit_cavi_batched needs a sequence of ModelData or one stacked CaviData")
+    shapes = {tuple(np.shape(a) for a in d) for d in datasets}
+    if len(shapes) != 1:
+        raise DataError(f"all datasets must have the same shapes, got {sorted(shapes)}")
+    prepared = [cavi.prepare_cavi_data(d) for d in datasets]
+    paths = {type(p.gram).__name__ for p in prepared}
+    if len(paths) != 1:
+        raise DataError("all datasets must share their design matrix the same way (fast path or not)")
+    hyper.validate_for(datasets[0].num_weights, datasets[0].num_demos)
+    return _stack([init_state(p, hyper) for p in prepared]), _stack(prepared)
+
+
+def _check_stacked(data: cavi.CaviData, hyper: Hyperparameters) -> None:
+    """Shapes of stacked statistics: psi_t_y (B, L, d), y_sq and num_obs (B, L), one unbatched SharedGram."""
+    gram = data.gram
+    if not isinstance(gram, cavi.SharedGram) or np.ndim(gram.basis) != 2 or np.ndim(data.psi_t_y) != 3:
+        raise DataError("stacked CaviData needs psi_t_y of shape (B, L, d) and one SharedGram without dataset axis")
+    B, L, d = np.shape(data.psi_t_y)
+    if np.shape(data.y_sq) != (B, L) or np.shape(data.num_obs) != (B, L) or np.shape(gram.basis) != (d, d):
+        raise DataError(f"stacked CaviData: y_sq and num_obs must be ({B}, {L}) and the gram basis ({d}, {d})")
+    if B < 1:
+        raise DataError("fit_cavi_batched needs at least one dataset")
+    hyper.validate_for(d, L)
+
+
 def fit_cavi_batched(
-    datasets: Sequence[ModelData],
+    datasets: Sequence[ModelData] | cavi.CaviData,
     hyper: Hyperparameters,
     *,
     tol: float = 1e-8,
     max_iter: int = 2000,
 ) -> BatchedCaviFit:
-    """Fit the single-type LMProMP by CAVI to R datasets of one shape at once.
+    """Fit the single-type LMProMP by CAVI (eq. 4.3) to R datasets of one shape at once.
 
     Parameters
     ----------
-    datasets : R :class:`ModelData` with identical shapes and the same design
-        path (all sharing one design matrix within each dataset, or none)
+    datasets : either R :class:`ModelData` with identical shapes and the same
+        design path (all sharing one design matrix within each dataset, or
+        none), initialised one at a time by
+        :func:`lmpromp_ppl.inference.init.init_state`; or one
+        :class:`~lmpromp_ppl.inference.cavi.CaviData` with a leading dataset
+        axis on ``psi_t_y`` (R, L, d), ``y_sq`` (R, L) and ``num_obs`` (R, L)
+        and one shared design (:class:`~lmpromp_ppl.inference.cavi.SharedGram`,
+        no dataset axis), initialised inside the compiled program by
+        :func:`lmpromp_ppl.inference.init.init_state_jax`
     hyper : hyperparameters (single component, fixed beta; the thesis's
         column-wise family)
     tol : relative ELBO tolerance of each replicate
@@ -108,8 +176,6 @@ def fit_cavi_batched(
     -------
     BatchedCaviFit
     """
-    from lmpromp_ppl.inference.init import init_state  # init imports cavi
-
     if not isinstance(hyper, Hyperparameters):
         raise LmprompError(f"hyper must be a Hyperparameters, got {type(hyper).__name__}")
     if hyper.num_components != 1 or hyper.learn_beta:
@@ -118,27 +184,18 @@ def fit_cavi_batched(
         raise LmprompError(f"tol must be a positive number, got {tol!r}")
     if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 1:
         raise LmprompError(f"max_iter must be an integer >= 1, got {max_iter!r}")
-    datasets = list(datasets)
-    if not datasets:
-        raise DataError("fit_cavi_batched needs at least one dataset")
-    shapes = {tuple(np.shape(a) for a in d) for d in datasets}
-    if len(shapes) != 1:
-        raise DataError(f"all datasets must have the same shapes, got {sorted(shapes)}")
-    prepared = [cavi.prepare_cavi_data(d) for d in datasets]
-    paths = {type(p.gram).__name__ for p in prepared}
-    if len(paths) != 1:
-        raise DataError("all datasets must share their design matrix the same way (fast path or not)")
-    hyper.validate_for(datasets[0].num_weights, datasets[0].num_demos)
-    states = _stack([init_state(p, hyper) for p in prepared])
-    data = _stack(prepared)
-    args = (states, data, cavi.hyper_arrays(hyper), jnp.asarray(tol, jnp.float64),
-            jnp.asarray(max_iter, jnp.int32))
+    if isinstance(datasets, cavi.CaviData):
+        _check_stacked(datasets, hyper)
+        states, data, latent_dim = None, datasets, hyper.latent_dim
+    else:
+        (states, data), latent_dim = _prepare_datasets(datasets, hyper), None
+    args = (states, data, cavi.hyper_arrays(hyper), jnp.asarray(tol, jnp.float64), jnp.asarray(max_iter, jnp.int32))
     leaves, treedef = jax.tree.flatten(args)
-    cache_key = (treedef, tuple((np.shape(x), jnp.asarray(x).dtype) for x in leaves))
+    cache_key = (treedef, latent_dim, tuple((np.shape(x), jnp.asarray(x).dtype) for x in leaves))
     start = time.perf_counter()
     compiled = _COMPILED.get(cache_key)
     if compiled is None:
-        compiled = _COMPILED[cache_key] = _batched_iterate.lower(*args).compile()
+        compiled = _COMPILED[cache_key] = _batched_program.lower(*args, latent_dim=latent_dim).compile()
         compile_seconds = time.perf_counter() - start
     else:
         compile_seconds = 0.0

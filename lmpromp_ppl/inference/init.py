@@ -32,13 +32,15 @@ from lmpromp_ppl.inference.cavi import (
     CaviState,
     EigenCovariance,
     FullCovariance,
+    HyperArrays,
     SharedGram,
     _h_posterior,
     _w_posterior,
 )
+from lmpromp_ppl.errors import LmprompError
 from lmpromp_ppl.models.hyper import Hyperparameters
 
-__all__ = ["ridge_weights", "init_state", "init_mixture_state"]
+__all__ = ["ridge_weights", "init_state", "init_state_jax", "init_mixture_state"]
 
 
 def ridge_weights(data: CaviData, ridge: float = 1e-4) -> np.ndarray:
@@ -132,6 +134,59 @@ def init_state(
         alpha_rate=f64(alpha_shape / alpha),
         lam_shape=f64(lam_shape),
         lam_rate=f64(lam_shape / lam),
+    )
+
+
+def init_state_jax(data: CaviData, hyper: HyperArrays, latent_dim: int, ridge: float = 1e-4) -> CaviState:
+    r"""The thesis initialisation of :func:`init_state` in pure JAX, traceable by ``jax.vmap``.
+
+    Same steps (Sec. 4.1.1: ridge weights, PCA for b, M and h, precisions at
+    their maximum-likelihood values given the means, covariances by their
+    updates), with the principal directions from ``eigh`` of the sample
+    covariance instead of scikit-learn.  The signs of the principal directions
+    may differ from scikit-learn's, a symmetry of the model
+    (:math:`m_v, h_{v} \to -m_v, -h_{v}`).  No restart jitter.
+
+    Parameters
+    ----------
+    data : prepared data on the shared-design fast path
+        (:class:`~lmpromp_ppl.inference.cavi.SharedGram`)
+    hyper : hyperparameter arrays (:func:`lmpromp_ppl.inference.cavi.hyper_arrays`)
+    latent_dim : V (static under ``jit``)
+    ridge : relative ridge of :func:`ridge_weights`
+
+    Returns
+    -------
+    CaviState
+    """
+    gram = data.gram
+    if not isinstance(gram, SharedGram):
+        raise LmprompError("init_state_jax needs shared-design data (SharedGram)")
+    rho = ridge * jnp.mean(gram.eigvals)
+    W = ((data.psi_t_y @ gram.basis) / (gram.eigvals + rho)) @ gram.basis.T
+    L, d = W.shape
+    b = jnp.mean(W, axis=0)
+    centred = W - b
+    eigvals, vectors = jnp.linalg.eigh(centred.T @ centred / (L - 1))
+    variance = eigvals[::-1][:latent_dim]
+    components = vectors[:, ::-1][:, :latent_dim]
+    variance = jnp.maximum(variance, 1e-10 * jnp.maximum(variance.max(), 1e-300))
+    scale = jnp.sqrt(variance)
+    M = components * scale
+    h = (centred @ components) / scale
+    residual = centred - h @ M.T
+    floor = 1e-3 * jnp.mean(centred**2) + 1e-12
+    alpha = 1.0 / jnp.maximum(jnp.mean(residual**2), floor)
+    col_sq = jnp.sum(M**2, axis=0)
+    lam = d / jnp.maximum(col_sq, 1e-8 * col_sq.max() + 1e-300)
+    alpha_shape = hyper.a0 + 0.5 * d * L
+    lam_shape = jnp.full((latent_dim,), hyper.c0 + 0.5 * d)
+    h_cov, M_var, w_cov = _covariances(data, hyper.beta, hyper.gamma, alpha, lam, b, M, h)
+    return CaviState(
+        w_mean=W, w_cov=w_cov, h_mean=h, h_cov=h_cov, b_mean=b,
+        b_var=1.0 / (L * alpha + hyper.lambda0), M_mean=M, M_var=M_var,
+        alpha_shape=alpha_shape, alpha_rate=alpha_shape / alpha,
+        lam_shape=lam_shape, lam_rate=lam_shape / lam,
     )
 
 
