@@ -23,7 +23,7 @@ demo: install
 	$(VENV)/bin/lmpromp demo --out $(DEMO_OUT) --force
 
 test: install-test
-	$(PY) -m pytest -n 2 -q
+	$(PY) -m pytest -n 2 --dist loadfile -q
 
 test-slow: install-test
 	$(PY) -m pytest -q -m slow

@@ -25,7 +25,8 @@ ENGINES = ("cavi", "svi_meanfield", "svi_autonormal", "svi_lowrank", "nuts")
 ENGINE_OPTIONS = {
     "cavi": {"tol", "max_iter", "num_restarts", "family"},
     "nuts": {"num_chains", "num_warmup", "num_samples", "target_accept", "max_tree_depth", "collapsed", "dense_mass"},
-    "svi": {"num_steps", "learning_rate", "num_particles", "rank", "stop_tol", "window"},
+    "svi": {"num_steps", "learning_rate", "learning_rate_decay", "num_particles", "rank", "stop_tol", "window",
+            "plateau_reductions", "plateau_factor"},
 }
 
 

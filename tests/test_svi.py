@@ -71,36 +71,36 @@ def test_meanfield_loss_estimates_the_cavi_elbo(data, hyper, cavi_run):
     assert abs(closed_form - start_elbo) > 20 * standard_error
 
 
-# above the Monte Carlo noise of a 250-step mean of the loss (about 0.16 / 26 here)
+# the autonormal test's relative tolerance: above the Monte Carlo noise of a 300-step mean of the loss
 STOP_TOL = 1e-2
+MEANFIELD = dict(guide="meanfield", num_particles=4, window=500)  # one compiled chunk for the meanfield runs
 
 
 @pytest.fixture(scope="module")
 def meanfield_fit(data, hyper, cavi_run):
-    """svi_meanfield from CAVI's starting point."""
+    """svi_meanfield from CAVI's starting point, default stopping rule (step size halved on 5 plateaus)."""
     start = cavi_run[2]
-    return run_svi("lmpromp", data, hyper, jax.random.key(1), guide="meanfield", num_steps=10000,
-                   learning_rate=0.01, num_particles=4, window=250, stop_tol=STOP_TOL,
-                   init_params=meanfield_params_from_cavi(start))
+    return run_svi("lmpromp", data, hyper, jax.random.key(1), num_steps=20000, learning_rate=0.03,
+                   init_params=meanfield_params_from_cavi(start), **MEANFIELD)
 
 
-def test_meanfield_svi_climbs_the_cavi_bound(meanfield_fit, cavi_run):
-    """The loss decreases, the stopping rule fires before the step limit, and the
-    closed-form ELBO at SVI's parameters gains at least 90 % of CAVI's gain over
-    the common start.
+def test_meanfield_svi_reaches_the_cavi_optimum(meanfield_fit, cavi_run):
+    """Issue 6: from the same initialisation, the closed-form ELBO at SVI's final
+    parameters is within 1 % of (ELBO_CAVI - ELBO_init) of the CAVI ELBO.
 
-    (Measured: 94-96 %; the rest of the gain, about 2 nats here, lies below the
-    Monte Carlo noise of the loss, so no loss-based stopping rule sees it.)
+    The loss decreases, the stopping rule fires before the step limit.  (Measured:
+    0.06-0.07 % of the gain of 40 nats, over three seeds, after 6500-8500 steps.)
     """
     cdata, arrays, start, _, final = cavi_run
     fit = meanfield_fit
     trace = fit.loss_trace
-    assert fit.converged and fit.num_steps_run < 10000 and trace.shape == (fit.num_steps_run,)
-    assert trace[-250:].mean() < trace[:250].mean()
+    assert fit.converged and fit.num_steps_run < 20000 and trace.shape == (fit.num_steps_run,)
+    assert fit.options["final_learning_rate"] == pytest.approx(0.03 * 0.5**5)
+    assert trace[-500:].mean() < trace[:500].mean()
     elbo_start = float(cavi.elbo(start, cdata, arrays))
     elbo_cavi = float(cavi.elbo(final, cdata, arrays))
     elbo_svi = float(cavi.elbo(cavi_state_from_meanfield(fit.params), cdata, arrays))
-    assert elbo_svi - elbo_start >= 0.9 * (elbo_cavi - elbo_start)
+    assert elbo_cavi - elbo_svi <= 0.01 * (elbo_cavi - elbo_start)
 
 
 def test_meanfield_draws_have_contract_sites(meanfield_fit, data):
@@ -114,10 +114,10 @@ def test_meanfield_draws_have_contract_sites(meanfield_fit, data):
 def test_stopping_rule_warns_at_the_step_limit(data, hyper, cavi_run, meanfield_fit):
     """stop_tol=0 cannot fire: the run takes all steps and warns (same compiled chunk as above)."""
     with pytest.warns(ConvergenceWarning, match="step limit"):
-        fit = run_svi("lmpromp", data, hyper, jax.random.key(3), guide="meanfield", num_steps=500,
-                      learning_rate=0.01, num_particles=4, window=250, stop_tol=0.0,
-                      init_params=meanfield_params_from_cavi(cavi_run[2]))
-    assert not fit.converged and fit.num_steps_run == 500
+        fit = run_svi("lmpromp", data, hyper, jax.random.key(3), num_steps=1000, learning_rate=0.01,
+                      stop_tol=0.0, init_params=meanfield_params_from_cavi(cavi_run[2]), **MEANFIELD)
+    assert not fit.converged and fit.num_steps_run == 1000
+    assert fit.options["final_learning_rate"] == 0.01  # no plateau reductions without the rule
     # the compiled chunk of meanfield_fit is reused for a new key and step limit
     assert fit.compile_seconds < meanfield_fit.compile_seconds
 
@@ -180,3 +180,5 @@ def test_svi_rejects_bad_options(data, hyper):
         run_svi("lmpromp", data, hyper, jax.random.key(0), learning_rate=-1.0)
     with pytest.raises(LmprompError, match="window"):
         run_svi("lmpromp", data, hyper, jax.random.key(0), window=1)
+    with pytest.raises(LmprompError, match="plateau_factor"):
+        run_svi("lmpromp", data, hyper, jax.random.key(0), plateau_factor=1.0)
