@@ -457,8 +457,6 @@ def engine_khat(result, data, key, num_draws: int = 1000) -> dict:
     Returns ``{"psis_khat", "psis_khat_numpyro", "note"}``; a k-hat that cannot be
     computed is ``None`` and the note says why.
     """
-    import jax
-
     out = {"psis_khat": None, "psis_khat_numpyro": None, "note": ""}
     engine = result.engine
     key_q = key

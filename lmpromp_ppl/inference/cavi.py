@@ -886,12 +886,22 @@ def fit_cavi(
     cavi_data = prepare_cavi_data(data, shared_psi)
     hyper_arr = hyper_arrays(hyper)
     keys = jax.random.split(key, num_restarts)
+    starts = (init_state(cavi_data, hyper, key=None if r == 0 else keys[r]) for r in range(num_restarts))
+    return _best_of_restarts(starts, cavi_data, hyper_arr, tol, max_iter, progress, "CAVI")
+
+
+def _best_of_restarts(starts, cavi_data, hyper_arr, tol, max_iter, progress, label, step_fn=None) -> CaviFit:
+    """Run every start with the compiled loop and keep the best final ELBO (warns at ``max_iter``).
+
+    ``step_fn`` is the sweep (default :func:`step`; the mixture engine passes its own).
+    """
+    step_fn = step if step_fn is None else step_fn
     best, restart_elbos, seconds, compile_seconds = None, [], 0.0, 0.0
-    for r in range(num_restarts):
-        start = init_state(cavi_data, hyper, key=None if r == 0 else keys[r])
+    starts = list(starts) if not hasattr(starts, "__next__") else starts
+    for r, start in enumerate(starts):
         result, trace, run_seconds, run_compile = _run_one(
             start, cavi_data, hyper_arr, float(tol), int(max_iter), progress,
-            f"CAVI restart {r + 1}/{num_restarts}",
+            f"{label} restart {r + 1}", step_fn=step_fn,
         )
         seconds += run_seconds
         compile_seconds += run_compile
@@ -908,7 +918,7 @@ def fit_cavi(
         warnings.warn(
             f"CAVI stopped at max_iter={max_iter} before the relative ELBO change fell below tol={tol}",
             ConvergenceWarning,
-            stacklevel=2,
+            stacklevel=4,
         )
     return CaviFit(
         state=result.state,

@@ -45,7 +45,6 @@ removed component are distributed as under their prior (their KL term is then 0)
 from __future__ import annotations
 
 import math
-import warnings
 from functools import partial
 from typing import NamedTuple
 
@@ -57,7 +56,7 @@ from jax.scipy.linalg import cho_solve
 from jax.scipy.special import digamma, gammaln
 
 from lmpromp_ppl.data.core import ModelData
-from lmpromp_ppl.errors import ConvergenceWarning, LmprompError
+from lmpromp_ppl.errors import LmprompError
 from lmpromp_ppl.inference.cavi import (
     CaviData,
     CaviFit,
@@ -76,7 +75,7 @@ from lmpromp_ppl.inference.cavi import (
     _h_posterior,
     _logdet_psd,
     _M_posterior,
-    _run_one,
+    _best_of_restarts,
     _w_posterior,
     prepare_cavi_data,
 )
@@ -665,39 +664,7 @@ def _validate_options(tol, max_iter, num_restarts, family) -> None:
 
 def _fit(starts, cavi_data, hyper_arr, tol, max_iter, progress, label) -> CaviFit:
     """Run every start with the compiled loop of :mod:`cavi` and keep the best final ELBO."""
-    best, restart_elbos, seconds, compile_seconds = None, [], 0.0, 0.0
-    for r, start in enumerate(starts):
-        result, trace, run_seconds, run_compile = _run_one(
-            start, cavi_data, hyper_arr, float(tol), int(max_iter), progress,
-            f"{label} restart {r + 1}/{len(starts)}", step_fn=step,
-        )
-        seconds += run_seconds
-        compile_seconds += run_compile
-        final = float(trace[-1])
-        if not math.isfinite(final):
-            raise LmprompError(
-                f"CAVI diverged (ELBO {final}) in restart {r + 1}; check beta and the data scaling"
-            )
-        restart_elbos.append(final)
-        if best is None or final > best[0]:
-            best = (final, result, trace)
-    final, result, trace = best
-    if not bool(result.converged):
-        warnings.warn(
-            f"CAVI stopped at max_iter={max_iter} before the relative ELBO change fell below tol={tol}",
-            ConvergenceWarning,
-            stacklevel=3,
-        )
-    return CaviFit(
-        state=result.state,
-        elbo=final,
-        elbo_trace=trace,
-        iterations=int(result.iterations),
-        converged=bool(result.converged),
-        seconds=seconds,
-        compile_seconds=compile_seconds,
-        restart_elbos=restart_elbos,
-    )
+    return _best_of_restarts(starts, cavi_data, hyper_arr, tol, max_iter, progress, label, step_fn=step)
 
 
 def fit_cavi_mixture(
