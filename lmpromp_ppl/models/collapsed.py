@@ -55,7 +55,7 @@ from jax.scipy.linalg import solve_triangular
 from lmpromp_ppl.data.core import ModelData
 from lmpromp_ppl.errors import LmprompError
 from lmpromp_ppl.models.hyper import Hyperparameters
-from lmpromp_ppl.models.lmpromp import PreparedData, observation_precision, prepare_data
+from lmpromp_ppl.models.lmpromp import PreparedData, global_priors, observation_precision, prepare_data
 from lmpromp_ppl.models.mixture import component_priors
 from lmpromp_ppl.models.promp import promp_weight_prior
 
@@ -109,16 +109,7 @@ def lmpromp_collapsed_model(
     hyper.validate_for(num_weights)
     num_latent = hyper.latent_dim
 
-    b = numpyro.sample(
-        "b", dist.Normal(0.0, hyper.lambda0**-0.5).expand([num_weights]).to_event(1)
-    )
-    lam = numpyro.sample("lam", dist.Gamma(hyper.c0, hyper.d0).expand([num_latent]).to_event(1))
-    M = numpyro.sample(
-        "M",
-        dist.Normal(0.0, jnp.broadcast_to(lam**-0.5, (num_weights, num_latent))).to_event(2),
-    )
-    alpha = numpyro.sample("alpha", dist.Gamma(hyper.a0, hyper.b0))
-    beta = observation_precision(hyper)
+    b, lam, M, alpha, beta = global_priors(hyper, num_weights)
     psi = prepared.psi
 
     with numpyro.plate("demo", num_demos):

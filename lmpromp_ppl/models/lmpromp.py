@@ -42,7 +42,7 @@ from lmpromp_ppl.data.core import ModelData
 from lmpromp_ppl.errors import DataError
 from lmpromp_ppl.models.hyper import Hyperparameters
 
-__all__ = ["lmpromp_model", "PreparedData", "prepare_data", "observation_precision", "observe_y"]
+__all__ = ["lmpromp_model", "PreparedData", "prepare_data", "observation_precision", "observe_y", "global_priors"]
 
 
 class PreparedData(NamedTuple):
@@ -134,6 +134,26 @@ def lmpromp_model(data: ModelData, hyper: Hyperparameters, observed: bool = True
     hyper.validate_for(num_weights)
     num_latent = hyper.latent_dim
 
+    b, lam, M, alpha, beta = global_priors(hyper, num_weights)
+
+    with numpyro.plate("demo", num_demos):
+        h = numpyro.sample(
+            "h", dist.Normal(0.0, hyper.gamma**-0.5).expand([num_latent]).to_event(1)
+        )
+        w = numpyro.sample(
+            "w", dist.Normal(b + h @ M.T, jnp.sqrt(1.0 / alpha)).to_event(1)
+        )
+        observe_y(prepared, w, beta, observed)
+
+
+def global_priors(hyper: Hyperparameters, num_weights: int):
+    r"""The global sites of eq. 4.1 and Sec. 4.1, shared by the full and collapsed forms.
+
+    :math:`b \sim N(0, \lambda_0^{-1} I_d)`, :math:`\lambda_v \sim \Gamma(c_0, d_0)`,
+    column :math:`m_v \sim N(0, \lambda_v^{-1} I_d)`, :math:`\alpha \sim \Gamma(a_0, b_0)`,
+    and :math:`\beta` (sampled only when learned).  Returns ``(b, lam, M, alpha, beta)``.
+    """
+    num_latent = hyper.latent_dim
     b = numpyro.sample(
         "b", dist.Normal(0.0, hyper.lambda0**-0.5).expand([num_weights]).to_event(1)
     )
@@ -144,13 +164,4 @@ def lmpromp_model(data: ModelData, hyper: Hyperparameters, observed: bool = True
         dist.Normal(0.0, jnp.broadcast_to(lam**-0.5, (num_weights, num_latent))).to_event(2),
     )
     alpha = numpyro.sample("alpha", dist.Gamma(hyper.a0, hyper.b0))
-    beta = observation_precision(hyper)
-
-    with numpyro.plate("demo", num_demos):
-        h = numpyro.sample(
-            "h", dist.Normal(0.0, hyper.gamma**-0.5).expand([num_latent]).to_event(1)
-        )
-        w = numpyro.sample(
-            "w", dist.Normal(b + h @ M.T, jnp.sqrt(1.0 / alpha)).to_event(1)
-        )
-        observe_y(prepared, w, beta, observed)
+    return b, lam, M, alpha, observation_precision(hyper)
