@@ -876,11 +876,7 @@ def fit_cavi(
             data, hyper, key, tol=tol, max_iter=max_iter, num_restarts=num_restarts,
             progress=progress, shared_psi=shared_psi, family=family,
         )
-    if not (isinstance(tol, (int, float)) and tol > 0 and math.isfinite(tol)):
-        raise LmprompError(f"tol must be a positive number, got {tol!r}")
-    for name, value in (("max_iter", max_iter), ("num_restarts", num_restarts)):
-        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-            raise LmprompError(f"{name} must be an integer >= 1, got {value!r}")
+    _check_options(tol, max_iter, num_restarts)
     _check_model_data(data)
     hyper.validate_for(data.num_weights, data.num_demos)
     cavi_data = prepare_cavi_data(data, shared_psi)
@@ -888,6 +884,15 @@ def fit_cavi(
     keys = jax.random.split(key, num_restarts)
     starts = (init_state(cavi_data, hyper, key=None if r == 0 else keys[r]) for r in range(num_restarts))
     return _best_of_restarts(starts, cavi_data, hyper_arr, tol, max_iter, progress, "CAVI")
+
+
+def _check_options(tol, max_iter, num_restarts) -> None:
+    """Validate the loop options shared by every CAVI engine."""
+    if not (isinstance(tol, (int, float)) and not isinstance(tol, bool) and tol > 0 and math.isfinite(tol)):
+        raise LmprompError(f"tol must be a positive number, got {tol!r}")
+    for name, value in (("max_iter", max_iter), ("num_restarts", num_restarts)):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+            raise LmprompError(f"{name} must be an integer >= 1, got {value!r}")
 
 
 def _best_of_restarts(starts, cavi_data, hyper_arr, tol, max_iter, progress, label, step_fn=None) -> CaviFit:

@@ -76,6 +76,7 @@ from lmpromp_ppl.inference.cavi import (
     _logdet_psd,
     _M_posterior,
     _best_of_restarts,
+    _check_options,
     _w_posterior,
     prepare_cavi_data,
 )
@@ -655,11 +656,7 @@ def step(state: MixtureState, data: CaviData, hyper: MixtureHyper) -> tuple[Mixt
 
 def _validate_options(tol, max_iter, num_restarts, family) -> None:
     _check_family(family)
-    if not (isinstance(tol, (int, float)) and not isinstance(tol, bool) and tol > 0 and math.isfinite(tol)):
-        raise LmprompError(f"tol must be a positive number, got {tol!r}")
-    for name, value in (("max_iter", max_iter), ("num_restarts", num_restarts)):
-        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-            raise LmprompError(f"{name} must be an integer >= 1, got {value!r}")
+    _check_options(tol, max_iter, num_restarts)
 
 
 def _fit(starts, cavi_data, hyper_arr, tol, max_iter, progress, label) -> CaviFit:
