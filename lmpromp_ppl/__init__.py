@@ -9,7 +9,7 @@ Importing the package switches JAX to float64 (:mod:`lmpromp_ppl._config`).
 from lmpromp_ppl import _config  # noqa: F401  (float64, before anything else)
 from lmpromp_ppl import data
 from lmpromp_ppl.api import ENGINES, MODELS, fit
-from lmpromp_ppl.models.hyper import PROPER, THESIS, Hyperparameters, preset
+from lmpromp_ppl.models.hyper import DEFAULT, PROPER, THESIS, Hyperparameters, preset
 from lmpromp_ppl.results import FitResult, load
 
 __version__ = "0.1.0"
@@ -22,6 +22,7 @@ __all__ = [
     "FitResult",
     "Hyperparameters",
     "THESIS",
+    "DEFAULT",
     "PROPER",
     "preset",
     "MODELS",

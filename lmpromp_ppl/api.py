@@ -11,7 +11,9 @@ from __future__ import annotations
 import jax
 import numpy as np
 
+from lmpromp_ppl.basis import DEFAULT_NUM_BASIS, DEFAULT_WIDTH
 from lmpromp_ppl.data.core import Demonstrations, model_data, standardize
+from lmpromp_ppl.diagnostics.degeneracy import result_warnings
 from lmpromp_ppl.errors import LmprompError
 from lmpromp_ppl.models.hyper import Hyperparameters, preset
 from lmpromp_ppl.results import FitResult
@@ -41,7 +43,7 @@ def observed_arrays(demos: Demonstrations) -> dict[str, np.ndarray]:
     return {"t": t, "y": y}
 
 
-def prepare(data: Demonstrations | str, num_basis: int, *, standardise: bool = True):
+def prepare(data: Demonstrations | str, num_basis: int, *, standardise: bool = True, width: float = DEFAULT_WIDTH):
     """Load (if a dataset string), standardise and build model inputs."""
     if isinstance(data, str):
         from lmpromp_ppl.data import load_dataset
@@ -53,13 +55,15 @@ def prepare(data: Demonstrations | str, num_basis: int, *, standardise: bool = T
         raise LmprompError(f"data must be Demonstrations or a dataset string, got {type(data).__name__}")
     if num_basis < 2:
         raise LmprompError(f"num_basis must be at least 2, got {num_basis}")
+    if not width > 0:
+        raise LmprompError(f"the basis width must be positive, got {width}")
     if standardise:
         scaled, scaling = standardize(data)
     else:
         from lmpromp_ppl.data.core import Scaling
 
         scaled, scaling = data, Scaling.identity(data.num_dofs)
-    return spec, data, scaled, scaling, model_data(scaled, num_basis)
+    return spec, data, scaled, scaling, model_data(scaled, num_basis, width)
 
 
 def fit(
@@ -68,7 +72,8 @@ def fit(
     engine: str = "cavi",
     hyper: Hyperparameters | None = None,
     *,
-    num_basis: int = 10,
+    num_basis: int = DEFAULT_NUM_BASIS,
+    width: float = DEFAULT_WIDTH,
     seed: int = 0,
     standardise: bool = True,
     progress: bool = False,
@@ -81,9 +86,11 @@ def fit(
     data : Demonstrations or a dataset string (``"lasa:GShape"``, ``"gunpoint"``, a file path)
     model : ``"promp"``, ``"lmpromp"`` or ``"mixture"``
     engine : ``"cavi"``, ``"nuts"``, ``"svi_meanfield"``, ``"svi_autonormal"`` or ``"svi_lowrank"``
-    hyper : hyperparameters; default: the thesis defaults for CAVI, the
-        ``proper`` preset for NUTS and SVI (near-improper Gamma priors cannot be sampled)
+    hyper : hyperparameters; default: the ``default`` preset for CAVI, the
+        ``proper`` preset for NUTS and SVI (near-improper Gamma priors cannot be
+        sampled); both learn the noise precision beta (docs/defaults.md)
     num_basis : basis functions per DoF (J)
+    width : basis width (:data:`lmpromp_ppl.basis.DEFAULT_WIDTH`)
     seed : seeds every random choice of the engine
     options : passed to the engine (e.g. ``tol``, ``max_iter``, ``num_restarts`` for
         CAVI; ``num_chains``, ``num_warmup``, ``num_samples`` for NUTS; ``num_steps``,
@@ -100,8 +107,8 @@ def fit(
     if unknown:
         raise LmprompError(f"engine {engine} does not take option(s) {', '.join(unknown)}; it takes {', '.join(sorted(allowed))}")
     if hyper is None:
-        hyper = preset("thesis" if engine == "cavi" else "proper")
-    spec, raw, scaled, scaling, mdata = prepare(data, num_basis, standardise=standardise)
+        hyper = preset("default" if engine == "cavi" else "proper")
+    spec, raw, scaled, scaling, mdata = prepare(data, num_basis, standardise=standardise, width=width)
     hyper.validate_for(mdata.num_weights, mdata.num_demos)
     if model == "mixture" and mdata.num_demos < hyper.num_components:
         raise LmprompError(
@@ -112,6 +119,7 @@ def fit(
         engine=engine,
         hyper=hyper,
         num_basis=num_basis,
+        width=float(width),
         num_dofs=raw.num_dofs,
         scaling=scaling,
         dataset=spec,
@@ -122,10 +130,13 @@ def fit(
     )
     key = jax.random.key(seed)
     if engine == "cavi":
-        return _fit_cavi(mdata, key, progress, common, options)
-    if engine == "nuts":
-        return _fit_nuts(mdata, key, progress, common, options)
-    return _fit_svi(mdata, key, progress, common, options)
+        result = _fit_cavi(mdata, key, progress, common, options)
+    elif engine == "nuts":
+        result = _fit_nuts(mdata, key, progress, common, options)
+    else:
+        result = _fit_svi(mdata, key, progress, common, options)
+    result.summary["warnings"] = result_warnings(result)
+    return result
 
 
 def _fit_cavi(mdata, key, progress, common, options) -> FitResult:

@@ -56,7 +56,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from lmpromp_ppl.basis import design_matrix
+from lmpromp_ppl.basis import DEFAULT_WIDTH, design_matrix
 from lmpromp_ppl.data.core import Demonstrations, ModelData, model_data, standardize
 from lmpromp_ppl.data.synthetic import latent_manifold
 from lmpromp_ppl.errors import ConvergenceWarning, DataError, LmprompError
@@ -248,7 +248,7 @@ def row_demonstrations(row: RowSpec) -> Demonstrations:
     return standardize(demos)[0]
 
 
-def shared_cavi_data(demos: Demonstrations, num_basis: int, width: float = 2.0) -> cavi.CaviData:
+def shared_cavi_data(demos: Demonstrations, num_basis: int, width: float = DEFAULT_WIDTH) -> cavi.CaviData:
     """CAVI statistics of demonstrations that share one time grid, without padded arrays.
 
     Equal to ``cavi.prepare_cavi_data(model_data(demos, num_basis, width))`` on

@@ -37,6 +37,7 @@ from typing import Callable
 import numpy as np
 import xarray as xr
 
+from lmpromp_ppl.basis import DEFAULT_WIDTH
 from lmpromp_ppl.data.core import Scaling
 from lmpromp_ppl.diagnostics.quantities import derived_quantities
 from lmpromp_ppl.errors import LmprompError
@@ -139,7 +140,7 @@ class FitResult:
     scaling: Scaling
     dataset: str = ""
     dof_names: tuple[str, ...] = ()
-    width: float = 2.0
+    width: float = DEFAULT_WIDTH
     draws: dict | None = None
     sampler: Callable | None = None
     point: dict = field(default_factory=dict)
@@ -269,6 +270,7 @@ class FitResult:
             "seconds": None,
             "compile_seconds": None,
             "active_latent_dims": None,
+            "warnings": [],
         }
         out.update(self.summary)
         return to_json_value(out)

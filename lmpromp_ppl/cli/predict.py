@@ -62,9 +62,9 @@ def predict_command(
     observe: Path = typer.Option(..., "--observe", help="Observed (partial) demonstration: .npz with t (T,), y (T, D) or .csv; NaN = unobserved."),
     out: Path = typer.Option(..., "--out", help="Output directory (prediction.npz, prediction.png)."),
     duration: Optional[float] = typer.Option(None, help="Map times to phases as t / duration (default: t are phases)."),
-    noise_sd: Optional[float] = typer.Option(None, "--noise-sd", help="Observation noise s.d. in data units (default: beta^-1/2 of the fit)."),
-    bayesian: bool = typer.Option(False, "--bayesian", help="Average over posterior draws instead of the posterior mean."),
-    exact: bool = typer.Option(False, "--exact", help="Exact p(w|o) instead of thesis eqs. 4.6-4.7."),
+    noise_sd: Optional[float] = typer.Option(None, "--noise-sd", help="Observation noise s.d. in data units (default: the fit's, from its learned beta)."),
+    bayesian: bool = typer.Option(True, "--bayesian/--plug-in", help="Average over posterior draws (default) or plug in the posterior mean."),
+    exact: bool = typer.Option(True, "--exact/--thesis-approximation", help="Exact p(w|o) (default) or the thesis's approximation, eqs. 4.6-4.7."),
     samples: int = typer.Option(20, help="Sampled trajectories to store."),
     seed: int = typer.Option(0, help="Seed for the sampled trajectories."),
     force: bool = typer.Option(False, "--force", help="Overwrite existing output files."),
@@ -91,15 +91,18 @@ def predict_command(
     pred = predict_from_fit(result, phase, y, noise_sd=noise_sd, bayesian=bayesian, exact=exact,
                             num_samples=samples, key=jax.random.key(seed))
     out_dir = prepare_out_dir(out, force)
-    np.savez(out_dir / "prediction.npz", phase=pred.phase, mean=pred.mean, sd=pred.sd, samples=pred.samples)
+    np.savez(out_dir / "prediction.npz", phase=pred.phase, mean=pred.mean, sd=pred.sd, sd_obs=pred.sd_obs,
+             samples=pred.samples)
     fig = Figure(figsize=(4.5 * result.num_dofs, 3.2), layout="constrained")
     FigureCanvasAgg(fig)
     axes = fig.subplots(1, result.num_dofs, squeeze=False)[0]
     for k, ax in enumerate(axes):
         for s in pred.samples[:, :, k]:
             ax.plot(pred.phase, s, color="tab:blue", alpha=0.15, lw=0.8)
-        ax.fill_between(pred.phase, pred.mean[:, k] - 2 * pred.sd[:, k], pred.mean[:, k] + 2 * pred.sd[:, k],
-                        color="tab:blue", alpha=0.2, label="mean ± 2 sd")
+        ax.fill_between(pred.phase, pred.mean[:, k] - 1.645 * pred.sd_obs[:, k], pred.mean[:, k] + 1.645 * pred.sd_obs[:, k],
+                        color="tab:blue", alpha=0.12, label="90 % band, new observation")
+        ax.fill_between(pred.phase, pred.mean[:, k] - 1.645 * pred.sd[:, k], pred.mean[:, k] + 1.645 * pred.sd[:, k],
+                        color="tab:blue", alpha=0.25, label="90 % band, movement")
         ax.plot(pred.phase, pred.mean[:, k], color="tab:blue", lw=2, label="predicted mean")
         ok = np.isfinite(y[:, k])
         ax.plot(phase[ok], y[ok, k], "o", color="black", ms=3, label="observed")

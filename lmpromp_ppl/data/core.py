@@ -18,7 +18,7 @@ import numpy as np
 import jax.numpy as jnp
 from jax import Array
 
-from lmpromp_ppl.basis import design_matrix
+from lmpromp_ppl.basis import DEFAULT_WIDTH, design_matrix
 from lmpromp_ppl.errors import DataError
 
 __all__ = ["Demonstrations", "Scaling", "ModelData", "standardize", "model_data"]
@@ -227,7 +227,7 @@ class ModelData(NamedTuple):
 
 
 def model_data(
-    demos: Demonstrations, num_basis: int, width: float = 2.0, phases: Sequence[np.ndarray] | None = None
+    demos: Demonstrations, num_basis: int, width: float = DEFAULT_WIDTH, phases: Sequence[np.ndarray] | None = None
 ) -> ModelData:
     """Build :class:`ModelData` from (standardised) demonstrations.
 

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from lmpromp_ppl.basis import rbf_basis
+from lmpromp_ppl.basis import DEFAULT_WIDTH, rbf_basis
 from lmpromp_ppl.data.core import Scaling
 
 __all__ = [
@@ -55,7 +55,7 @@ def trajectory_moments(
     num_basis: int,
     gamma: float,
     phase: np.ndarray,
-    width: float = 2.0,
+    width: float = DEFAULT_WIDTH,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Per-draw mean and s.d. of the movement distribution, (..., phase, dof).
 
@@ -99,7 +99,7 @@ def derived_quantities(
     gamma: float,
     scaling: Scaling | None = None,
     num_phases: int = 50,
-    width: float = 2.0,
+    width: float = DEFAULT_WIDTH,
 ) -> dict[str, np.ndarray]:
     """``gram_eig``, ``pred_mean``, ``pred_sd`` and ``phase`` for the ``derived`` group."""
     phase = np.linspace(0.0, 1.0, num_phases)

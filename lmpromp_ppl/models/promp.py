@@ -38,6 +38,7 @@ import numpyro
 import numpyro.distributions as dist
 from jax import Array
 
+from lmpromp_ppl.basis import DEFAULT_WIDTH
 from lmpromp_ppl.data.core import Demonstrations, ModelData, model_data
 from lmpromp_ppl.errors import LmprompError
 from lmpromp_ppl.models.hyper import Hyperparameters
@@ -92,7 +93,7 @@ def promp_model(data: ModelData, hyper: Hyperparameters, observed: bool = True) 
 def classical_promp(
     demos: ModelData | Demonstrations,
     num_basis: int | None = None,
-    width: float = 2.0,
+    width: float = DEFAULT_WIDTH,
     ridge: float = 1e-6,
     shrinkage: str | float = "ledoit-wolf",
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

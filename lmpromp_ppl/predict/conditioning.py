@@ -171,7 +171,7 @@ def condition_lmpromp(
     observation: Observation,
     gamma: ArrayLike = 1.0,
     *,
-    exact: bool = False,
+    exact: bool = True,
 ) -> Conditioned:
     r"""LMProMP conditioning through the control variables, eqs. (4.4)-(4.7).
 
@@ -234,7 +234,7 @@ def condition_mixture(
     observation: Observation,
     gamma: ArrayLike = 1.0,
     *,
-    exact: bool = False,
+    exact: bool = True,
 ) -> Conditioned:
     r"""Mixture-of-LMProMPs prediction (Sec. 4.2.2, with corrected responsibilities).
 
@@ -299,7 +299,7 @@ def condition(
     observation: Observation,
     gamma: ArrayLike = 1.0,
     *,
-    exact: bool = False,
+    exact: bool = True,
 ) -> Conditioned:
     """Plug-in predictive of ``model`` (``"promp"``, ``"lmpromp"`` or ``"mixture"``) given ``observation``.
 
@@ -361,7 +361,7 @@ def condition_draws(
     observation: Observation,
     gamma: ArrayLike = 1.0,
     *,
-    exact: bool = False,
+    exact: bool = True,
     reweight: bool = False,
 ) -> Conditioned:
     r"""Bayesian predictive: condition every posterior draw and average (any engine).

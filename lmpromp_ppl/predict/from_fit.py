@@ -3,6 +3,14 @@
 :func:`predict_from_fit` ties observations in data units to the fit's basis
 and scaling, conditions the plug-in or Bayesian predictive, and returns the
 trajectory distribution and samples in data units.  ``lmpromp predict`` calls it.
+
+Defaults: the exact conditional :math:`p(\mathbf w | \mathbf o)` (the thesis's
+eqs. 4.6-4.7 only with ``exact=False``, docs/derivation.md), averaged over
+posterior draws (``bayesian=True``; the plug-in posterior mean of ``M`` is
+meaningless for a sampler, whose draws of ``M`` differ by rotations), with the
+observation noise of the fit (its learned ``beta`` when ``beta`` was inferred).
+Two bands are returned: ``sd`` of the movement :math:`\Psi\mathbf w` and
+``sd_obs`` of a new observation of it (``sd`` with the noise variance added).
 """
 
 from __future__ import annotations
@@ -14,10 +22,10 @@ import numpy as np
 
 from lmpromp_ppl.errors import DataError
 from lmpromp_ppl.predict.conditioning import condition, condition_draws
-from lmpromp_ppl.predict.observations import observe
+from lmpromp_ppl.predict.observations import empty_observation, observe
 from lmpromp_ppl.predict.trajectories import sample_trajectories, trajectory_distribution
 
-__all__ = ["Prediction", "predict_from_fit"]
+__all__ = ["Prediction", "predict_from_fit", "population_prediction", "noise_sd_of"]
 
 
 class Prediction(NamedTuple):
@@ -25,9 +33,21 @@ class Prediction(NamedTuple):
 
     phase: np.ndarray  # (P,)
     mean: np.ndarray  # (P, D)
-    sd: np.ndarray  # (P, D)
+    sd: np.ndarray  # (P, D) movement (noise-free trajectory)
+    sd_obs: np.ndarray  # (P, D) a new observation: movement plus observation noise
     samples: np.ndarray  # (N, P, D)
     component_weights: np.ndarray  # (K,) responsibilities (1 for single-type models)
+    noise_sd: np.ndarray  # (D,) observation noise s.d. in data units
+
+
+def noise_sd_of(result) -> np.ndarray:
+    """Observation-noise s.d. per DoF in data units: :math:`E[\beta]^{-1/2}` when
+    ``beta`` was learned (posterior mean), else the fixed ``hyper.beta``."""
+    beta = result.point.get("beta") if result.point else None
+    if beta is None and result.draws is not None and "beta" in result.draws:
+        beta = np.mean(result.draws["beta"])
+    beta = result.hyper.beta if beta is None else float(np.mean(beta))
+    return np.asarray(result.scaling.scale, dtype=float) / np.sqrt(beta)
 
 
 def predict_from_fit(
@@ -36,9 +56,10 @@ def predict_from_fit(
     values: np.ndarray,
     *,
     noise_sd: float | np.ndarray | None = None,
-    bayesian: bool = False,
-    exact: bool = False,
+    bayesian: bool = True,
+    exact: bool = True,
     num_phases: int = 100,
+    query: np.ndarray | None = None,
     num_samples: int = 20,
     max_draws: int = 200,
     key=None,
@@ -50,11 +71,16 @@ def predict_from_fit(
     result : a FitResult (fresh or from :func:`lmpromp_ppl.load`)
     phase : (T,) phases in [0, 1] of the observations
     values : (T, D) positions in data units; NaN marks an unobserved entry
-        (partial observation of some DoF)
+        (partial observation of some DoF); T = 0 gives the population
+        (unconditioned) movement distribution
     noise_sd : observation noise s.d. in data units (scalar or per DoF);
-        default beta^-1/2 of the fit, mapped to data units
-    bayesian : average over posterior draws instead of the posterior mean
-    exact : exact conditional p(w | o) instead of thesis eqs. 4.6, 4.7
+        default :func:`noise_sd_of` the fit
+    bayesian : average over posterior draws (default) instead of plugging in
+        the posterior mean
+    exact : the exact conditional p(w | o) (default); ``False`` gives the
+        thesis's approximation, eqs. 4.6-4.7
+    num_phases : predict at this many equally spaced phases in [0, 1] ...
+    query : ... or at these phases
     """
     values = np.asarray(values, dtype=float)
     phase = np.asarray(phase, dtype=float)
@@ -67,11 +93,15 @@ def predict_from_fit(
         raise DataError("observed positions contain inf")
     mask = np.isfinite(values)
     if noise_sd is None:
-        noise_sd = np.asarray(result.scaling.scale) / np.sqrt(result.hyper.beta)
-    obs = observe(
-        phase, np.where(mask, values, 0.0), noise_sd=noise_sd, num_dofs=D, num_basis=result.num_basis,
-        width=result.width, mask=mask, scaling=result.scaling,
-    )
+        noise_sd = noise_sd_of(result)
+    noise = np.broadcast_to(np.asarray(noise_sd, dtype=float), (D,))
+    if phase.size == 0:
+        obs = empty_observation(D * result.num_basis)
+    else:
+        obs = observe(
+            phase, np.where(mask, values, 0.0), noise_sd=noise_sd, num_dofs=D, num_basis=result.num_basis,
+            width=result.width, mask=mask, scaling=result.scaling,
+        )
     gamma = result.hyper.gamma
     if bayesian:
         draws = result.posterior_draws()
@@ -81,7 +111,7 @@ def predict_from_fit(
         post = condition_draws(result.model, {k: v[keep] for k, v in flat.items()}, obs, gamma, exact=exact)
     else:
         post = condition(result.model, result.point, obs, gamma, exact=exact)
-    query = np.linspace(0.0, 1.0, num_phases)
+    query = np.linspace(0.0, 1.0, num_phases) if query is None else np.asarray(query, dtype=float)
     traj = trajectory_distribution(post.weights, query, num_dofs=D, num_basis=result.num_basis, width=result.width)
     key = jax.random.key(0) if key is None else key
     paths = np.asarray(
@@ -89,10 +119,18 @@ def predict_from_fit(
     )
     scale, shift = np.asarray(result.scaling.scale), np.asarray(result.scaling.mean)
     weights = np.exp(np.asarray(post.weights.log_weights))
+    sd = np.asarray(traj.sd) * scale
     return Prediction(
         phase=query,
         mean=np.asarray(traj.mean) * scale + shift,
-        sd=np.asarray(traj.sd) * scale,
+        sd=sd,
+        sd_obs=np.sqrt(sd**2 + noise**2),
         samples=paths * scale + shift,
         component_weights=weights / weights.sum(),
+        noise_sd=noise,
     )
+
+
+def population_prediction(result, **options) -> Prediction:
+    """The movement distribution of a new demonstration, conditioned on nothing (options as :func:`predict_from_fit`)."""
+    return predict_from_fit(result, np.zeros(0), np.zeros((0, result.num_dofs)), **options)

@@ -29,7 +29,7 @@ import jax.numpy as jnp
 from jax import Array
 from jax.typing import ArrayLike
 
-from lmpromp_ppl.basis import design_matrix, velocity_design_matrix
+from lmpromp_ppl.basis import DEFAULT_WIDTH, design_matrix, velocity_design_matrix
 from lmpromp_ppl.data.core import Scaling
 from lmpromp_ppl.errors import DataError
 
@@ -174,7 +174,7 @@ def observe(
     noise_sd: ArrayLike = 0.1,
     num_dofs: int,
     num_basis: int,
-    width: float = 2.0,
+    width: float = DEFAULT_WIDTH,
     mask: ArrayLike | None = None,
     scaling: Scaling | None = None,
 ) -> Observation:
@@ -250,7 +250,7 @@ def via_point(
     duration: float = 1.0,
     num_dofs: int,
     num_basis: int,
-    width: float = 2.0,
+    width: float = DEFAULT_WIDTH,
     scaling: Scaling | None = None,
 ) -> Observation:
     r"""A via-point: a position, optionally a velocity, at one phase.

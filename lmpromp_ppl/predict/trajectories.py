@@ -31,7 +31,7 @@ import jax.numpy as jnp
 from jax import Array
 from jax.typing import ArrayLike
 
-from lmpromp_ppl.basis import rbf_basis
+from lmpromp_ppl.basis import DEFAULT_WIDTH, rbf_basis
 from lmpromp_ppl.data.core import Scaling
 from lmpromp_ppl.errors import LmprompError
 from lmpromp_ppl.predict.gaussian import GaussianMixture
@@ -97,7 +97,7 @@ def trajectory_distribution(
     *,
     num_dofs: int,
     num_basis: int,
-    width: float = 2.0,
+    width: float = DEFAULT_WIDTH,
     beta: ArrayLike | None = None,
 ) -> TrajectoryDistribution:
     r"""Mean and standard deviation of the trajectory at each (phase, DoF).
@@ -175,7 +175,7 @@ def sample_trajectories(
     *,
     num_dofs: int,
     num_basis: int,
-    width: float = 2.0,
+    width: float = DEFAULT_WIDTH,
     beta: ArrayLike | None = None,
 ) -> Array:
     r"""Draw trajectories :math:`\Psi \mathbf{w}` (plus :math:`\mathcal{N}(0, \beta^{-1})` noise when ``beta`` is given).

@@ -1,0 +1,81 @@
+"""``lmpromp real-data``: do the default settings fit real demonstrations? (reports/real-data/)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from lmpromp_ppl.cli import app
+from lmpromp_ppl.cli._common import prepare_out_dir
+
+__all__ = ["real_data_command"]
+
+_NUTS_DATASETS = "lasa:GShape?every=20,lasa:Angle?every=20,gunpoint:train"
+
+
+def _split(text: str) -> list[str]:
+    return [x.strip() for x in text.split(",") if x.strip()]
+
+
+@app.command("real-data")
+def real_data_command(
+    out: Path = typer.Option(..., "--out", help="Output directory (real-data.md, real-data.json, predictive.png)."),
+    datasets: Optional[str] = typer.Option(None, help="Comma-separated dataset strings (default: all 30 LASA shapes, GunPoint, two synthetic sets)."),
+    engines: str = typer.Option("cavi,nuts", help="Engines, comma-separated (cavi, nuts, svi_*)."),
+    nuts_datasets: str = typer.Option(_NUTS_DATASETS, "--nuts-datasets", help="The subsample that NUTS runs on (comma-separated)."),
+    max_folds: int = typer.Option(8, "--max-folds", min=1, help="Held-out demonstrations per dataset (CAVI, SVI)."),
+    nuts_folds: int = typer.Option(3, "--nuts-folds", min=1, help="Held-out demonstrations per dataset for NUTS."),
+    mixture_seeds: int = typer.Option(10, "--mixture-seeds", min=0, help="Seeds per pooled LASA set for the mixture check (0: skip)."),
+    seed: int = typer.Option(0, "--seed", help="Seed for every random choice."),
+    force: bool = typer.Option(False, "--force", help="Write into an existing non-empty directory."),
+    quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
+) -> None:
+    """Fit every dataset with the default settings and write the table of docs/defaults.md."""
+    from lmpromp_ppl.errors import LmprompError
+    from lmpromp_ppl.reports import real_data
+
+    names = _split(datasets) if datasets else real_data.default_datasets()
+    engine_list = _split(engines)
+    from lmpromp_ppl.api import ENGINES
+
+    unknown = [e for e in engine_list if e not in ENGINES]
+    if unknown:
+        raise LmprompError(f"unknown engine(s) {', '.join(unknown)}; choose from {', '.join(ENGINES)}")
+    from lmpromp_ppl.data import load_dataset
+
+    loaded = {name: load_dataset(name) for name in dict.fromkeys(names + (_split(nuts_datasets) if "nuts" in engine_list else []))}
+    target = prepare_out_dir(out, force)
+    echo = (lambda msg: None) if quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
+    rows = []
+    for engine in engine_list:
+        subset = _split(nuts_datasets) if engine == "nuts" else names
+        folds = nuts_folds if engine == "nuts" else max_folds
+        for name in subset:
+            row = real_data.dataset_row(name, engine, max_folds=folds, seed=seed, demos=loaded[name])
+            rows.append(row)
+            ok = "all criteria met" if all(row["passes"].values()) else \
+                "fails " + ", ".join(k for k, v in row["passes"].items() if not v)
+            echo(f"{engine} {name}: pop RMSE {row['pop_rmse']:.3f}, LOO coverage {row['coverage90']:.2f}, "
+                 f"max |w| {row['max_abs_w']:.2g}; {ok} ({row['seconds']:.0f} s)")
+    mixture = []
+    if mixture_seeds:
+        mixture = real_data.mixture_rows(
+            list(real_data.POOLED_LASA) + ["synthetic:clusters", "gunpoint:train"],
+            seeds=[seed + s for s in range(mixture_seeds)],
+            on_row=lambda r: echo(f"mixture {r['dataset']} seed {r['seed']}: {r['active_components']} active, "
+                                  f"ARI {r['ari'] if r['ari'] is None else round(r['ari'], 3)}"),
+        )
+    parts = ["lmpromp real-data", f"--out {out}", f"--engines {engines}", f"--max-folds {max_folds}",
+             f"--mixture-seeds {mixture_seeds}", f"--seed {seed}"]
+    if datasets:
+        parts.append(f"--datasets '{datasets}'")
+    if "nuts" in engine_list:
+        parts += [f"--nuts-datasets '{nuts_datasets}'", f"--nuts-folds {nuts_folds}"]
+    command = " ".join(parts)
+    real_data.write_report(target, rows, mixture, command=command,
+                           figure=[n for n in names if n.startswith("lasa:")][:7] + [n for n in names if n.startswith("gunpoint")][:1])
+    if not quiet:
+        typer.echo(f"wrote {target / 'real-data.md'}")

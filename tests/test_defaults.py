@@ -1,0 +1,184 @@
+"""Default settings on real demonstrations (docs/defaults.md) and the degeneracy warnings.
+
+The full table over every dataset is ``reports/real-data/`` (``make real-data``);
+here a small real case and a noisy synthetic case check that the defaults give
+movement distributions that follow the demonstrations, and that the thesis's
+settings are flagged where they do not.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+import lmpromp_ppl as lp
+from lmpromp_ppl.basis import DEFAULT_NUM_BASIS, DEFAULT_WIDTH, design_matrix
+from lmpromp_ppl.data.core import Demonstrations
+from lmpromp_ppl.diagnostics.degeneracy import H_MEAN_LIMIT, WEIGHT_LIMIT, degeneracy_warnings
+from lmpromp_ppl.predict.from_fit import population_prediction, predict_from_fit
+from lmpromp_ppl.reports.real_data import dataset_row
+
+GSHAPE = "lasa:GShape?every=20"
+
+
+def _fit(data, **kw):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return lp.fit(data, **kw)
+
+
+def test_presets_default_learns_noise_and_thesis_keeps_its_values():
+    default, thesis = lp.Hyperparameters(), lp.preset("thesis")
+    assert default == lp.DEFAULT == lp.preset("default")
+    assert default.learn_beta and default.lambda0 == 0.01
+    assert not thesis.learn_beta and thesis.lambda0 == 1.0 and thesis.beta == 100.0
+    assert lp.PROPER.learn_beta and lp.PROPER.lambda0 == default.lambda0
+
+
+def test_default_basis_is_well_conditioned_and_the_thesis_basis_is_not():
+    phase = np.linspace(0, 1, 100)
+
+    def cond(J, width):
+        psi = np.asarray(design_matrix(phase, 1, J, width))
+        return np.linalg.cond(psi.T @ psi)
+
+    assert cond(DEFAULT_NUM_BASIS, DEFAULT_WIDTH) < 1e5
+    assert cond(10, 2.0) > 1e6  # the thesis's width: near-collinear neighbours
+
+
+@pytest.fixture(scope="module")
+def gshape_default():
+    return _fit(GSHAPE, model="lmpromp", engine="cavi", hyper=lp.preset("default", latent_dim=2))
+
+
+def test_default_fit_of_lasa_follows_the_demonstrations(gshape_default):
+    result = gshape_default
+    demos = lp.data.load_dataset(GSHAPE)
+    pop = population_prediction(result, query=demos.phases()[0], num_samples=1)
+    mean = np.mean(np.stack(demos.positions), axis=0)
+    scale = np.asarray(result.scaling.scale)
+    rmse = np.sqrt(np.mean(((pop.mean - mean) / scale) ** 2))
+    assert rmse < 0.25
+    assert np.max(np.abs(result.point["w"])) < WEIGHT_LIMIT
+    # the mean lives in b, not in M h
+    h = np.asarray(result.point["h"])
+    assert np.linalg.norm(h.mean(axis=0)) < H_MEAN_LIMIT
+    assert result.summary["warnings"] == []
+    # the learned noise is that of a smooth recording, far below the thesis's fixed 0.1
+    assert "beta" in result.point and float(result.point["beta"]) > 100.0
+
+
+def test_thesis_settings_on_lasa_are_flagged_as_degenerate():
+    result = _fit(GSHAPE, model="lmpromp", engine="cavi", hyper=lp.preset("thesis", latent_dim=2),
+                  num_basis=10, width=2.0)
+    text = " ".join(result.summary["warnings"])
+    assert "mean movement carried by M h" in text
+    demos = lp.data.load_dataset(GSHAPE)
+    pop = population_prediction(result, query=demos.phases()[0], num_samples=1)
+    rmse = np.sqrt(np.mean(((pop.mean - np.mean(np.stack(demos.positions), axis=0)) / result.scaling.scale) ** 2))
+    assert rmse > 0.25
+
+
+def _noisy_sines(noise_sd=0.5, L=10, T=100, seed=0):
+    rng = np.random.default_rng(seed)
+    t = np.linspace(0, 1, T)
+    truth = np.sin(2 * np.pi * t)[:, None]
+    y = [truth + noise_sd * rng.standard_normal((T, 1)) for _ in range(L)]
+    return Demonstrations(times=[t] * L, positions=y, name="noisy-sines"), t, truth
+
+
+def test_learned_noise_fits_noisy_recordings():
+    demos, t, truth = _noisy_sines()
+    result = _fit(demos, model="lmpromp", engine="cavi", hyper=lp.preset("default", latent_dim=2))
+    pred = population_prediction(result, query=t, num_samples=1)
+    # the noise level is learned: 0.5 in data units, within sampling error of 1000 residuals
+    assert abs(pred.noise_sd[0] - 0.5) < 0.05
+    assert np.max(np.abs(result.point["w"])) < 5.0
+    assert np.sqrt(np.mean((pred.mean - truth) ** 2)) < 0.1
+    # conditioning on the first third follows the sine, not the noise
+    third = t.size // 3
+    cond = predict_from_fit(result, t[:third], demos.positions[0][:third], query=t, num_samples=1)
+    assert np.sqrt(np.mean((cond.mean - truth) ** 2)) < 0.2
+    # the band of a new observation includes the noise
+    np.testing.assert_allclose(pred.sd_obs**2, pred.sd**2 + pred.noise_sd**2, rtol=1e-12)
+
+
+def test_default_predict_is_exact_and_passes_through_precise_observations(gshape_default):
+    result = gshape_default
+    demos = lp.data.load_dataset(GSHAPE)
+    z, y = demos.phases()[0][:15], demos.positions[0][:15]
+    exact = predict_from_fit(result, z, y, query=z, num_samples=1)
+    thesis = predict_from_fit(result, z, y, query=z, num_samples=1, exact=False)
+    scale = np.asarray(result.scaling.scale)
+    miss_exact = np.sqrt(np.mean(((exact.mean - y) / scale) ** 2))
+    miss_thesis = np.sqrt(np.mean(((thesis.mean - y) / scale) ** 2))
+    assert miss_exact < 0.05 and miss_exact < miss_thesis
+
+
+def test_real_data_row_meets_every_criterion_on_lasa():
+    row = dataset_row(GSHAPE, "cavi", max_folds=3, options={"hyper": lp.preset("default", latent_dim=2)})
+    assert row["folds"] == [0, 3, 6]
+    assert all(row["passes"].values()), row
+    assert 0.0 < row["halfwidth"] < 1.5 and row["max_abs_w"] < WEIGHT_LIMIT
+
+
+# ----------------------------------------------------------- degeneracy warnings
+def _clean_point(L=6, d=8, V=2, K=None):
+    rng = np.random.default_rng(0)
+    h = rng.standard_normal((L, V))
+    h -= h.mean(axis=0)
+    point = {"h": h, "w": rng.uniform(-1, 1, (L, d)), "b": np.zeros(d), "alpha": np.array(5.0), "M": np.ones((d, V))}
+    return point
+
+
+def test_no_warning_for_a_clean_fit():
+    assert degeneracy_warnings("lmpromp", point=_clean_point(), summary={"converged": True, "active_latent_dims": [0, 1]}) == []
+
+
+@pytest.mark.parametrize(
+    "change, summary, phrase",
+    [
+        (lambda p: p.update(h=p["h"] - 1.2), {}, "mean movement carried by M h"),
+        (lambda p: p.update(w=p["w"] * 50), {}, "weights far beyond"),
+        (lambda p: None, {"active_latent_dims": []}, "every latent dimension is switched off"),
+        (lambda p: None, {"converged": False, "iterations": 2000}, "not converged"),
+        (lambda p: None, {"divergences": 3}, "3 divergent"),
+    ],
+)
+def test_each_symptom_gives_its_warning(change, summary, phrase):
+    point = _clean_point()
+    change(point)
+    out = degeneracy_warnings("lmpromp", point=point, summary=summary)
+    assert len(out) == 1 and phrase in out[0]
+
+
+def test_h_offset_is_rotation_invariant_over_draws():
+    point = _clean_point()
+    rng = np.random.default_rng(1)
+    draws = []
+    for _ in range(20):  # every draw offset by 1.2 in a random direction: the mean over draws is ~0
+        angle = rng.uniform(0, 2 * np.pi)
+        draws.append(point["h"] + 1.2 * np.array([np.cos(angle), np.sin(angle)]))
+    h = np.stack(draws)[None]  # (chain, draw, L, V)
+    out = degeneracy_warnings("lmpromp", point=point, draws={"h": h})
+    assert any("carried by M h" in x for x in out)
+
+
+def test_mixture_copy_and_responsibility_weighted_offset():
+    d, J = 6, 6
+    b = np.zeros((3, d))
+    b[2] += 2.0
+    point = {"b": b, "alpha": np.full(3, 4.0), "M": np.zeros((3, d, 1)), "w": np.zeros((4, d)),
+             "h": np.zeros((4, 3, 1))}
+    out = degeneracy_warnings("mixture", point=point, num_dofs=1, num_basis=J, resp=np.eye(4, 3), active=[0, 1, 2])
+    assert len(out) == 1 and "components 0 and 1 are copies" in out[0]
+    # a removed component is not compared
+    assert degeneracy_warnings("mixture", point=point, num_dofs=1, num_basis=J, resp=np.eye(4, 3), active=[0, 2]) == []
+    # h offset only among the demonstrations a component is responsible for
+    point["h"][:2, 0, 0] = 2.0
+    resp = np.zeros((4, 3))
+    resp[:2, 0] = resp[2:, 2] = 1.0
+    out = degeneracy_warnings("mixture", point=point, num_dofs=1, num_basis=J, resp=resp, active=[0, 2])
+    assert len(out) == 1 and "of component 0" in out[0]
