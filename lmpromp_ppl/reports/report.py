@@ -117,7 +117,9 @@ def write_report(out: Path, metrics: dict, results: dict, details: dict, demos) 
             "Files: `metrics.json` (the numbers below), `report.md` and the self-contained `report.html`, "
             "the PNG figures, and for each engine `<engine>/posterior.nc` (ArviZ DataTree, netCDF) with "
             "`<engine>/summary.json`; load one with `lmpromp_ppl.load(DIR/<engine>)`. VI engines store "
-            "draws from q as one chain."
+            "draws from q as one chain. To keep the report small the files hold an evenly thinned subset "
+            "of the draws (the metrics use them all); CAVI's file also holds the variational parameters, "
+            "so `result.sampler(key, n)` re-samples q."
         ),
     ]
     nuts = engines["nuts"]
