@@ -15,10 +15,13 @@ ROOT = Path(__file__).resolve().parent.parent
 REPORTS_MAX_BYTES = 15_000_000
 
 # absolute directories of a build machine; written so that this file does not match itself
+# (absolute: not preceded by a name character, so URLs and relative paths do not count)
 BUILD_PATHS = re.compile(
+    r"(?<![\w.~-])(?:"
     r"/(?:work|root)/"  # CI and container work dirs
     r"|/(?:home|Users)/[A-Za-z0-9._-]+/"  # a user's home directory
     r"|/tmp/[^\s\"']*site-packages"  # a temporary virtual environment
+    r")"
 )
 
 
