@@ -38,7 +38,7 @@ data_app = typer.Typer(
 
 _DATASET_HELP = (
     "lasa:<Shape>[?every=N], gunpoint[:train|:test|:all], synthetic:<name>[?key=value&...], "
-    "or a path ending in .npz, .csv or .ts"
+    "or a path ending in .npz, .csv or .ts; quote it when it holds ? or & ('lasa:GShape?every=20')"
 )
 
 
