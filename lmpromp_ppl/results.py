@@ -23,6 +23,22 @@ seed, timing, the per-DoF scaling, the basis and the package versions.
 :meth:`FitResult.save` writes ``posterior.nc`` (netCDF through h5netcdf) and
 ``summary.json``; :func:`load` reads them back.  Both carry
 :data:`FORMAT_VERSION`.
+
+What is saved, and how big it gets:
+
+* every array is stored in float64 (no rounding) with zlib compression, and
+  :func:`load` gives back exactly the arrays that were saved;
+* CAVI results also store the variational parameters, the engine state, in the
+  group ``variational``; a loaded CAVI fit rebuilds the state, so q can be
+  re-sampled (``result.sampler(key, n)`` gives the same draws as before saving
+  for the same key) and predicted from;
+* the draw-indexed groups (``posterior``, ``derived``, ``sample_stats``,
+  ``posterior_predictive``) are thinned evenly along ``draw`` when the
+  posterior draws would exceed ``max_draw_bytes`` (default
+  :data:`MAX_DRAW_BYTES`, uncompressed) -- the per-demonstration sites ``w``
+  and ``h`` grow with the number of demonstrations.  At least
+  :data:`MIN_SAVED_DRAWS` draws per chain are kept; the ``draw`` coordinate
+  holds the indices of the kept draws.
 """
 
 from __future__ import annotations
@@ -44,11 +60,18 @@ from lmpromp_ppl.errors import LmprompError
 from lmpromp_ppl.models.hyper import Hyperparameters
 
 __all__ = [
-    "FORMAT_VERSION", "SITE_DIMS", "FitResult", "load", "package_version", "package_versions", "site_dims",
-    "to_json_value",
+    "FORMAT_VERSION", "MAX_DRAW_BYTES", "MIN_SAVED_DRAWS", "SITE_DIMS", "FitResult", "load", "package_version",
+    "package_versions", "site_dims", "to_json_value",
 ]
 
 FORMAT_VERSION = 1
+
+#: Default bound, in bytes before compression, on the posterior draws a saved fit stores.
+MAX_DRAW_BYTES = 8_000_000
+#: Draws per chain kept however large the per-demonstration sites are.
+MIN_SAVED_DRAWS = 20
+#: zlib level of every stored array.
+COMPRESSION_LEVEL = 4
 
 #: Dims of each site after the sample dims; ``component`` only in the mixture.
 SITE_DIMS: dict[str, tuple[str, ...]] = {
@@ -114,6 +137,75 @@ def to_json_value(x):
     return x
 
 
+def kept_draws(draws: dict, max_bytes: float) -> np.ndarray | None:
+    """Indices of the draws (per chain) a saved fit keeps, evenly spaced; ``None`` keeps them all.
+
+    The posterior draws ``draws`` (leading dims chain, draw) are kept whole
+    while they take at most ``max_bytes``; beyond that as many draws as fit,
+    but at least :data:`MIN_SAVED_DRAWS`.
+    """
+    if not draws:
+        return None
+    n = np.shape(next(iter(draws.values())))[1]
+    per_draw = sum(np.asarray(v).nbytes for v in draws.values()) / n
+    if per_draw * n <= max_bytes:
+        return None
+    keep = min(n, max(MIN_SAVED_DRAWS, int(max_bytes // per_draw)))
+    return np.unique(np.linspace(0, n - 1, keep).round().astype(int))
+
+
+def _state_dataset(state) -> xr.Dataset:
+    """The CAVI state as a Dataset (one variable per array; nested covariances as ``w_cov__<field>``)."""
+    data_vars, attrs = {}, {"state_type": type(state).__name__}
+    for name, value in state._asdict().items():
+        if value is None:
+            continue
+        if hasattr(value, "_asdict"):
+            attrs[f"{name}_type"] = type(value).__name__
+            items = [(f"{name}__{sub}", v) for sub, v in value._asdict().items()]
+        else:
+            items = [(name, value)]
+        for var, v in items:
+            arr = np.asarray(v)
+            data_vars[var] = (tuple(f"{var}_dim_{i}" for i in range(arr.ndim)), arr)
+    return xr.Dataset(data_vars, attrs=attrs)
+
+
+def _state_from_dataset(ds: xr.Dataset):
+    """Rebuild the CAVI state written by :func:`_state_dataset`."""
+    import jax.numpy as jnp
+
+    from lmpromp_ppl.inference import cavi
+
+    types = {"CaviState": cavi.CaviState, "MixtureState": cavi.MixtureState}
+    covs = {"FullCovariance": cavi.FullCovariance, "EigenCovariance": cavi.EigenCovariance}
+    state_type = types[ds.attrs["state_type"]]
+    fields = {}
+    for name in state_type._fields:
+        if f"{name}_type" in ds.attrs:
+            cov_type = covs[ds.attrs[f"{name}_type"]]
+            fields[name] = cov_type(**{sub: jnp.asarray(ds[f"{name}__{sub}"].values) for sub in cov_type._fields})
+        elif name in ds.data_vars:
+            fields[name] = jnp.asarray(ds[name].values)
+        else:
+            fields[name] = None
+    return state_type(**fields)
+
+
+def _encoding(tree: xr.DataTree) -> dict:
+    """zlib compression (with byte shuffling) of every non-scalar array; values are stored unchanged."""
+    encoding = {}
+    for node in tree.subtree:
+        enc = {
+            name: {"zlib": True, "complevel": COMPRESSION_LEVEL, "shuffle": True}
+            for name, var in node.to_dataset(inherit=False).variables.items()
+            if var.ndim > 0 and var.dtype.kind in "biuf"
+        }
+        if enc:
+            encoding[node.path] = enc
+    return encoding
+
+
 def _dataset(values: dict, sample_dims: tuple[str, ...]) -> xr.Dataset:
     data_vars = {}
     for name, value in values.items():
@@ -170,12 +262,13 @@ class FitResult:
     def elbo(self) -> float | None:
         return self.summary.get("elbo")
 
-    def posterior_predictive(self, key=None, num_draws: int | None = None) -> np.ndarray:
+    def posterior_predictive(self, key=None, num_draws: int | None = None, draws: dict | None = None) -> np.ndarray:
         r"""Replicated demonstrations ``(chain, draw, demo, sample, dof)`` in data units.
 
         For each posterior draw of ``w``: :math:`y_i = \Psi_i w_i + \epsilon`,
         :math:`\epsilon \sim N(0, \beta^{-1} I)` (standardised units, then
         mapped back), at the observed times; NaN where ``observed_data`` is padded.
+        ``draws`` replaces :meth:`posterior_draws` (e.g. the thinned draws a saved fit keeps).
         """
         import jax
 
@@ -183,7 +276,7 @@ class FitResult:
 
         if not self.observed:
             raise LmprompError("this result holds no observed data to replicate")
-        draws = self.posterior_draws()
+        draws = self.posterior_draws() if draws is None else draws
         w = np.asarray(draws["w"])  # (chain, draw, L, d)
         if num_draws is not None:
             w = w[:, :num_draws]
@@ -202,10 +295,23 @@ class FitResult:
             out[:, :, i, valid] = self.scaling.invert(rep)
         return out
 
-    def to_datatree(self, num_draws: int = 1000, key=None, *, posterior_predictive: bool = False) -> xr.DataTree:
-        """The result in the common DataTree layout (module docstring)."""
+    def to_datatree(
+        self, num_draws: int = 1000, key=None, *, posterior_predictive: bool = False,
+        max_draw_bytes: float | None = None,
+    ) -> xr.DataTree:
+        """The result in the common DataTree layout (module docstring).
+
+        ``max_draw_bytes`` thins the draw-indexed groups evenly along ``draw``
+        (:func:`kept_draws`); ``None`` keeps every draw.
+        """
         draws = self.posterior_draws(num_draws, key)
-        groups = {"posterior": _dataset(draws, ("chain", "draw"))}
+        keep = None if max_draw_bytes is None else kept_draws(draws, max_draw_bytes)
+        sample_stats = self.sample_stats
+        if keep is not None:
+            draws = {k: np.asarray(v)[:, keep] for k, v in draws.items()}
+            sample_stats = {k: np.asarray(v)[:, keep] for k, v in sample_stats.items()}
+        draw_coord = {"draw": np.arange(np.shape(next(iter(draws.values())))[1]) if keep is None else keep}
+        groups = {"posterior": _dataset(draws, ("chain", "draw")).assign_coords(draw_coord)}
         derived = derived_quantities(
             self.model,
             draws,
@@ -217,9 +323,9 @@ class FitResult:
         )
         phase = derived.pop("phase")
         ds = _dataset(derived, ("chain", "draw"))
-        groups["derived"] = ds.assign_coords(phase=phase, dof=list(self.dof_names or range(self.num_dofs)))
-        if self.sample_stats:
-            groups["sample_stats"] = _dataset(self.sample_stats, ("chain", "draw"))
+        groups["derived"] = ds.assign_coords(phase=phase, dof=list(self.dof_names or range(self.num_dofs)), **draw_coord)
+        if sample_stats:
+            groups["sample_stats"] = _dataset(sample_stats, ("chain", "draw")).assign_coords(draw_coord)
         if self.optimization:
             groups["optimization"] = xr.Dataset(
                 {k: (("iteration",), np.asarray(v, dtype=float)) for k, v in self.optimization.items()}
@@ -229,7 +335,11 @@ class FitResult:
         if self.observed:
             groups["observed_data"] = _dataset(self.observed, ())
         if posterior_predictive:
-            groups["posterior_predictive"] = _dataset({"y": self.posterior_predictive(key)}, ("chain", "draw"))
+            groups["posterior_predictive"] = _dataset(
+                {"y": self.posterior_predictive(key, draws=draws)}, ("chain", "draw")
+            ).assign_coords(draw_coord)
+        if self.engine == "cavi" and self.state is not None and hasattr(self.state, "_asdict"):
+            groups["variational"] = _state_dataset(self.state)
         tree = xr.DataTree.from_dict(groups)
         tree.attrs.update(self._attrs())
         return tree
@@ -275,17 +385,25 @@ class FitResult:
         out.update(self.summary)
         return to_json_value(out)
 
-    def save(self, out_dir: str | Path, *, force: bool = False, num_draws: int = 1000, key=None) -> Path:
-        """Write ``posterior.nc`` and ``summary.json`` into ``out_dir``."""
+    def save(
+        self, out_dir: str | Path, *, force: bool = False, num_draws: int = 1000, key=None,
+        max_draw_bytes: float = MAX_DRAW_BYTES,
+    ) -> Path:
+        """Write ``posterior.nc`` and ``summary.json`` into ``out_dir``.
+
+        Arrays are stored in float64 with zlib compression; draws are thinned
+        to about ``max_draw_bytes`` (module docstring).  VI engines draw
+        ``num_draws`` from q with ``key`` first.
+        """
         out_dir = Path(out_dir)
         targets = [out_dir / "posterior.nc", out_dir / "summary.json"]
         existing = [str(t) for t in targets if t.exists()]
         if existing and not force:
             raise LmprompError(f"refusing to overwrite {', '.join(existing)}; pass force=True (--force)")
         out_dir.mkdir(parents=True, exist_ok=True)
-        tree = self.to_datatree(num_draws, key)
+        tree = self.to_datatree(num_draws, key, max_draw_bytes=max_draw_bytes)
         tmp = out_dir / "posterior.nc.tmp"
-        tree.to_netcdf(tmp, engine="h5netcdf")
+        tree.to_netcdf(tmp, engine="h5netcdf", encoding=_encoding(tree))
         tmp.replace(targets[0])
         targets[1].write_text(json.dumps(self.summary_dict(), indent=2) + "\n")
         return out_dir
@@ -332,4 +450,10 @@ def load(path: str | Path) -> FitResult:
         seed=None if int(attrs.get("seed", -1)) < 0 else int(attrs["seed"]),
         summary={k: v for k, v in summary.items() if k not in ("format_version",)},
     )
+    if "variational" in tree.children:
+        from lmpromp_ppl.inference import cavi
+
+        state = _state_from_dataset(tree["variational"].to_dataset())
+        result.state = state
+        result.sampler = lambda k, n: cavi.sample_q(k, state, n)
     return result

@@ -170,7 +170,11 @@ def plot_distribution(ax, weights, color, label, key=0, n=NUM_PATHS):
 
 # %%
 HYPER = lp.Hyperparameters(latent_dim=3, lambda0=1e-2)
-fit = lp.fit(SPEC, model="lmpromp", engine="cavi", hyper=HYPER, num_basis=NUM_BASIS, tol=1e-6)
+with warnings.catch_warnings(record=True) as caught:  # show the message, not where it was raised
+    warnings.simplefilter("always")
+    fit = lp.fit(SPEC, model="lmpromp", engine="cavi", hyper=HYPER, num_basis=NUM_BASIS, tol=1e-6)
+for w in caught:
+    print(f"{w.category.__name__}: {w.message}")
 point = fit.point
 active = fit.summary["active_latent_dims"]
 print(f"CAVI: {fit.summary['iterations']} sweeps, converged: {fit.summary['converged']}, ELBO {fit.summary['elbo']:.1f}")

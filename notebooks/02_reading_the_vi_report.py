@@ -55,7 +55,6 @@ warnings.filterwarnings("ignore", message="IProgress not found")  # tqdm without
 import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
-from IPython import get_ipython
 from IPython.display import Image, Markdown, display
 
 import lmpromp_ppl as lp
@@ -76,7 +75,6 @@ plt.rcParams.update({"figure.dpi": 90, "axes.grid": True, "grid.alpha": 0.3})
 # %%
 out = Path(tempfile.mkdtemp()) / "report"
 metrics = compare(DATASET, "lmpromp", out_dir=out, latent_dim=2, seed=0, progress=False, **SETTINGS)
-get_ipython().run_line_magic("matplotlib", "inline")  # the report's figures switched matplotlib to Agg
 engines = metrics["engines"]
 print(sorted(p.name for p in out.iterdir()))
 

@@ -389,6 +389,40 @@ def test_ard_switches_off_surplus_dimensions(recovery):
     assert np.max(angles) < np.radians(10.0)
 
 
+def _state_with_lam(state, lam_mean):
+    """``state`` with E[lam_v] = ``lam_mean`` (shape kept, rate set)."""
+    lam_mean = jnp.asarray(lam_mean, dtype=float)
+    return state._replace(lam_rate=state.lam_shape / lam_mean)
+
+
+def test_ard_reports_none_active_when_every_column_is_off(midway):
+    """All E[lam_v] ~ 1400 (every column switched off on standardised data): no dimension is active,
+    although each passes the relative rule; columns with 1/E[lam_v] of order 1 are reported."""
+    _, state = midway
+    V = state.lam_shape.shape[0]
+    off = _state_with_lam(state, np.linspace(1380.0, 1420.0, V))
+    inverse = 1.0 / np.linspace(1380.0, 1420.0, V)
+    assert np.all(inverse > 1e-3 * inverse.max())  # the relative rule alone would say "all"
+    assert cavi.active_latent_dims(off) == []
+    mixed = _state_with_lam(state, [0.5] + [1400.0] * (V - 1))
+    assert cavi.active_latent_dims(mixed) == [0]
+    on = _state_with_lam(state, np.linspace(0.5, 20.0, V))
+    assert cavi.active_latent_dims(on) == list(range(V))
+
+
+def test_ard_on_a_fit_without_structure_reports_none(recovery):
+    """Demonstrations that differ only by noise: CAVI switches every column off and says so,
+    while the fit with two true dimensions (test above) reports them."""
+    data, _ = recovery
+    mean = np.nanmean(np.asarray(data.y), axis=0, keepdims=True)
+    noise = 0.01 * np.random.default_rng(5).normal(size=np.shape(data.y))
+    flat = data._replace(y=jnp.asarray(np.where(np.asarray(data.mask), mean + noise, 0.0)))
+    fit = cavi.fit_cavi(flat, HYPER.replace(latent_dim=3), jax.random.key(0))
+    lam = np.asarray(fit.state.lam_shape / fit.state.lam_rate)
+    assert np.all(lam > 100.0), lam  # ARD switched every column off
+    assert cavi.active_latent_dims(fit.state) == []
+
+
 # --------------------------------------------------------------------------- engineering
 def test_shared_psi_fast_path_equals_general_path(small):
     data = small["shared"]

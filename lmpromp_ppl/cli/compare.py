@@ -14,7 +14,7 @@ __all__ = ["compare_command"]
 
 @app.command("compare")
 def compare_command(
-    dataset: str = typer.Argument(..., help="Dataset string (lasa:GShape?every=20, gunpoint, synthetic:latent?L=20, file.npz)."),
+    dataset: str = typer.Argument(..., help="Dataset string ('lasa:GShape?every=20', gunpoint, 'synthetic:latent?L=20&seed=0', file.npz); quote it when it holds ? or &."),
     out: Path = typer.Option(..., "--out", help="Output directory (report.md, report.html, metrics.json, figures, <engine>/posterior.nc)."),
     model: str = typer.Option("lmpromp", help="promp, lmpromp or mixture."),
     engines: str = typer.Option("cavi,svi,nuts", help="Comma-separated engines; 'svi' means all three SVI guides; nuts is required (the reference)."),

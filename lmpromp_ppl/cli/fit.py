@@ -37,7 +37,7 @@ def hyper_from_options(
 
 @app.command("fit")
 def fit_command(
-    dataset: str = typer.Argument(..., help="Dataset string (lasa:GShape, gunpoint, synthetic:latent?L=20, file.npz)."),
+    dataset: str = typer.Argument(..., help="Dataset string (lasa:GShape, gunpoint, 'synthetic:latent?L=20&seed=0', file.npz); quote it when it holds ? or &."),
     out: Path = typer.Option(..., "--out", help="Output directory (posterior.nc, summary.json)."),
     model: str = typer.Option("lmpromp", help="promp, lmpromp or mixture."),
     engine: str = typer.Option("cavi", help="cavi, nuts, svi_meanfield, svi_autonormal or svi_lowrank."),

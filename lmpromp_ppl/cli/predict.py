@@ -106,8 +106,10 @@ def predict_command(
         ax.plot(pred.phase, pred.mean[:, k], color="tab:blue", lw=2, label="predicted mean")
         ok = np.isfinite(y[:, k])
         ax.plot(phase[ok], y[ok, k], "o", color="black", ms=3, label="observed")
+        name = result.dof_names[k] if result.dof_names else f"DoF {k}"
         ax.set_xlabel("phase")
-        ax.set_title(result.dof_names[k] if result.dof_names else f"DoF {k}")
+        ax.set_ylabel(f"{name} (data units)")
+        ax.set_title(name)
     axes[0].legend(fontsize=8)
     fig.savefig(out_dir / "prediction.png", dpi=110)
     if not quiet:

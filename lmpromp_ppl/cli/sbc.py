@@ -140,7 +140,7 @@ def sbc_command(
 
 @app.command("sweep")
 def sweep_command(
-    dataset: str = typer.Argument(..., help="Dataset string (lasa:GShape, synthetic:latent?L=20, file.npz)."),
+    dataset: str = typer.Argument(..., help="Dataset string (lasa:GShape, 'synthetic:latent?L=20&seed=0', file.npz); quote it when it holds ? or &."),
     out: Path = typer.Option(..., "--out", help="Directory: sweep.json, sweep.md and tasks/."),
     grid: list[str] = typer.Option(..., "--grid", help="NAME=V1,V2 (repeatable): hyperparameter fields or num_basis."),
     metric: str = typer.Option("lpd", help="Held-out metric to rank by: lpd (higher is better) or rmse."),

@@ -863,15 +863,19 @@ def active_components(state: MixtureState) -> list[int]:
     return [int(k) for k in np.flatnonzero(np.asarray(state.active))]
 
 
-def active_latent_dims(state: MixtureState, threshold: float = 1e-3) -> list[int] | list[list[int]]:
-    """ARD per component: v is active when :math:`1/E[\\lambda_{kv}] > \\text{threshold}\\cdot\\max_u 1/E[\\lambda_{ku}]`.
+def active_latent_dims(
+    state: MixtureState, threshold: float = 1e-3, floor: float = 1e-2
+) -> list[int] | list[list[int]]:
+    r"""ARD per component: v is active when :math:`1/E[\lambda_{kv}] > \text{threshold}\cdot\max_u 1/E[\lambda_{ku}]`
+    and :math:`1/E[\lambda_{kv}] > \text{floor}` (the rule and its reasons:
+    :func:`lmpromp_ppl.inference.cavi.active_latent_dims`).
 
     Single type: a list of indices; mixture: one list per component (all K, empty for removed ones).
     """
     inverse = np.asarray(state.lam_rate / state.lam_shape)
     active = np.asarray(state.active)
     per_component = [
-        [int(v) for v in np.flatnonzero(row > threshold * row.max())] if active[k] else []
+        [int(v) for v in np.flatnonzero((row > threshold * row.max()) & (row > floor))] if active[k] else []
         for k, row in enumerate(inverse)
     ]
     return per_component[0] if state.resp is None else per_component

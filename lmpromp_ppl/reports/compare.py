@@ -17,7 +17,11 @@ posterior.  NUTS is the reference.  Before any metric:
 
 Files (docs/cli.md): ``report.md``, ``report.html`` (self-contained),
 ``metrics.json``, PNG figures, and ``<engine>/posterior.nc`` with
-``<engine>/summary.json`` for each engine.
+``<engine>/summary.json`` for each engine.  The posterior files are written
+like every saved fit (:meth:`lmpromp_ppl.results.FitResult.save`: float64,
+zlib-compressed) with the draws thinned to :data:`REPORT_DRAW_BYTES`, so that
+a report stays small; the metrics use every draw, and CAVI's file holds the
+variational parameters, from which q can be re-sampled.
 """
 
 from __future__ import annotations
@@ -44,6 +48,8 @@ JOINT_QUANTITIES = ("b", "alpha", "lam", "gram_eig", "mu_w")
 #: Quantities whose R-hat and ESS judge the reference.
 RELIABILITY_QUANTITIES = ("b", "alpha", "lam", "gram_eig", "pred_mean", "pred_sd", "w", "mu_w")
 SVI_ENGINES = ("svi_meanfield", "svi_autonormal", "svi_lowrank")
+#: Bound (bytes before compression) on the posterior draws each engine's posterior.nc keeps.
+REPORT_DRAW_BYTES = 300_000
 
 
 def expand_engines(engines: str | Sequence[str], model: str) -> list[str]:
@@ -219,7 +225,8 @@ def compare(
     preset_name : hyperparameter preset shared by every engine (default ``proper``)
     num_chains, num_warmup, num_samples : NUTS settings (engine defaults when None)
     svi_steps : maximum SVI steps (engine default when None)
-    num_draws : draws saved and compared per VI engine (at most 1000 recommended)
+    num_draws : draws compared per VI engine (at most 1000 recommended); the saved
+        files keep fewer (:data:`REPORT_DRAW_BYTES`)
     seed : seeds every engine and every diagnostic
     force : overwrite the files of an existing report
     progress : print progress to stderr
@@ -287,7 +294,7 @@ def compare(
     })
     say("writing posteriors, figures and the report ...")
     for name, result in results.items():
-        result.save(out / name, force=True, num_draws=num_draws)
+        result.save(out / name, force=True, num_draws=num_draws, max_draw_bytes=REPORT_DRAW_BYTES)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2, allow_nan=False) + "\n")
     write_report(out, metrics, results, details, raw)
     say(f"wrote {out}/report.md, report.html, metrics.json")

@@ -67,20 +67,24 @@ def _predictive_band(q: dict) -> tuple[np.ndarray, np.ndarray]:
     return mean.mean(axis=0), np.sqrt((sd**2).mean(axis=0) + mean.var(axis=0))
 
 
-def _latent_coords(model: str, details: dict) -> tuple[dict, str]:
+def _latent_coords(model: str, details: dict) -> tuple[dict, str, tuple[str, str]]:
+    """Two coordinates per demonstration for the latent figure, its title and its axis labels."""
     aligned = details["aligned"]
     if model == "lmpromp" and all("h" in a and a["h"].shape[-1] >= 1 for a in aligned.values()):
         coords = {}
         for name, a in aligned.items():
             h = a["h"].mean(axis=0)
             coords[name] = h[:, :2] if h.shape[1] >= 2 else np.c_[np.arange(h.shape[0]), h[:, 0]]
-        return coords, "posterior mean of h, Procrustes-aligned to the NUTS reference (latent dims 1 and 2)"
+        one = any(a["h"].shape[-1] < 2 for a in aligned.values())
+        labels = ("demonstration", "h, latent dim 1") if one else ("h, latent dim 1", "h, latent dim 2")
+        return coords, "posterior mean of h, Procrustes-aligned to the NUTS reference (latent dims 1 and 2)", labels
     w_ref = aligned["nuts"]["w"].mean(axis=0)
     centre = w_ref.mean(axis=0)
     _, _, vt = np.linalg.svd(w_ref - centre, full_matrices=False)
     basis = vt[:2].T
     coords = {name: (a["w"].mean(axis=0) - centre) @ basis for name, a in aligned.items()}
-    return coords, "posterior mean of w projected on the first two principal axes of the NUTS posterior mean"
+    return (coords, "posterior mean of w projected on the first two principal axes of the NUTS posterior mean",
+            ("w, principal axis 1", "w, principal axis 2"))
 
 
 def write_report(out: Path, metrics: dict, results: dict, details: dict, demos) -> list[Path]:
@@ -99,8 +103,8 @@ def write_report(out: Path, metrics: dict, results: dict, details: dict, demos) 
         out / "sd_ratios.png")
     bands = {e: _predictive_band(details["quantities"][e]) for e in engines}
     pred = figures.plot_predictive(bands, details["phase"], demos, out / "predictive.png")
-    coords, coord_title = _latent_coords(model, details)
-    latent = figures.plot_latent(coords, demos.labels, out / "latent.png", coord_title)
+    coords, coord_title, coord_labels = _latent_coords(model, details)
+    latent = figures.plot_latent(coords, demos.labels, out / "latent.png", coord_title, coord_labels)
     paths = [p for p in (traces, marg, forest, pred, latent) if p is not None]
 
     hyper = metrics["hyperparameters"]
@@ -117,7 +121,9 @@ def write_report(out: Path, metrics: dict, results: dict, details: dict, demos) 
             "Files: `metrics.json` (the numbers below), `report.md` and the self-contained `report.html`, "
             "the PNG figures, and for each engine `<engine>/posterior.nc` (ArviZ DataTree, netCDF) with "
             "`<engine>/summary.json`; load one with `lmpromp_ppl.load(DIR/<engine>)`. VI engines store "
-            "draws from q as one chain."
+            "draws from q as one chain. To keep the report small the files hold an evenly thinned subset "
+            "of the draws (the metrics use them all); CAVI's file also holds the variational parameters, "
+            "so `result.sampler(key, n)` re-samples q."
         ),
     ]
     nuts = engines["nuts"]

@@ -253,21 +253,18 @@ class progress_bar:
 
 
 def matplotlib_figure(nrows: int, ncols: int, size: tuple[float, float]):
-    """A new figure and axes grid on the non-interactive Agg backend."""
-    import matplotlib
+    """A new figure (Agg canvas, no pyplot state: the user's backend is left alone) and its axes grid."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(nrows, ncols, figsize=size, squeeze=False)
+    fig = Figure(figsize=size)
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(nrows, ncols, squeeze=False)
     return fig, axes
 
 
 def save_figure(fig, path: Path) -> None:
-    """Save ``fig`` as PNG and close it."""
-    import matplotlib.pyplot as plt
-
+    """Save ``fig`` as PNG."""
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
 
