@@ -49,7 +49,7 @@ __all__ = [
 
 
 #: Basis functions per DoF (J) when none is given (docs/defaults.md).
-DEFAULT_NUM_BASIS = 15
+DEFAULT_NUM_BASIS = 20
 #: Basis width: the Gaussians' variance in units of the squared centre spacing (docs/defaults.md).
 DEFAULT_WIDTH = 1.0
 
