@@ -158,9 +158,9 @@ class FitResult:
             return self.draws
         if self.sampler is None:
             raise LmprompError("this result holds neither draws nor a sampler")
-        import jax
+        from lmpromp_ppl._keys import DRAWS, seed_key
 
-        key = jax.random.key(0) if key is None else key
+        key = seed_key(self.seed, DRAWS) if key is None else key
         raw = self.sampler(key, num_draws)
         self.draws = {k: np.asarray(v)[None] for k, v in raw.items()}
         return self.draws
@@ -178,6 +178,7 @@ class FitResult:
         """
         import jax
 
+        from lmpromp_ppl._keys import POSTERIOR_PREDICTIVE, seed_key
         from lmpromp_ppl.basis import design_matrix
 
         if not self.observed:
@@ -188,7 +189,7 @@ class FitResult:
             w = w[:, :num_draws]
         beta = np.asarray(draws["beta"])[:, : w.shape[1], None, None] if "beta" in draws else self.hyper.beta
         t, y = np.asarray(self.observed["t"]), np.asarray(self.observed["y"])
-        key = jax.random.key(0) if key is None else key
+        key = seed_key(self.seed, POSTERIOR_PREDICTIVE) if key is None else key
         noise = np.asarray(jax.random.normal(key, w.shape[:2] + y.shape))
         out = np.full(w.shape[:2] + y.shape, np.nan)
         for i in range(t.shape[0]):
@@ -203,6 +204,9 @@ class FitResult:
 
     def to_datatree(self, num_draws: int = 1000, key=None, *, posterior_predictive: bool = False) -> xr.DataTree:
         """The result in the common DataTree layout (module docstring)."""
+        import jax
+
+        from lmpromp_ppl._keys import POSTERIOR_PREDICTIVE
         draws = self.posterior_draws(num_draws, key)
         groups = {"posterior": _dataset(draws, ("chain", "draw"))}
         derived = derived_quantities(
@@ -228,7 +232,9 @@ class FitResult:
         if self.observed:
             groups["observed_data"] = _dataset(self.observed, ())
         if posterior_predictive:
-            groups["posterior_predictive"] = _dataset({"y": self.posterior_predictive(key)}, ("chain", "draw"))
+            # not the key of the draws: the noise must be independent of them
+            noise_key = None if key is None else jax.random.fold_in(key, POSTERIOR_PREDICTIVE)
+            groups["posterior_predictive"] = _dataset({"y": self.posterior_predictive(noise_key)}, ("chain", "draw"))
         tree = xr.DataTree.from_dict(groups)
         tree.attrs.update(self._attrs())
         return tree

@@ -12,6 +12,7 @@ from typing import NamedTuple
 import jax
 import numpy as np
 
+from lmpromp_ppl._keys import PREDICTION, seed_key
 from lmpromp_ppl.errors import DataError
 from lmpromp_ppl.predict.conditioning import condition, condition_draws
 from lmpromp_ppl.predict.observations import observe
@@ -55,6 +56,7 @@ def predict_from_fit(
         default beta^-1/2 of the fit, mapped to data units
     bayesian : average over posterior draws instead of the posterior mean
     exact : exact conditional p(w | o) instead of thesis eqs. 4.6, 4.7
+    key : PRNG key of the sampled trajectories; default: derived from the fit's seed
     """
     values = np.asarray(values, dtype=float)
     phase = np.asarray(phase, dtype=float)
@@ -83,7 +85,7 @@ def predict_from_fit(
         post = condition(result.model, result.point, obs, gamma, exact=exact)
     query = np.linspace(0.0, 1.0, num_phases)
     traj = trajectory_distribution(post.weights, query, num_dofs=D, num_basis=result.num_basis, width=result.width)
-    key = jax.random.key(0) if key is None else key
+    key = seed_key(result.seed, PREDICTION) if key is None else key
     paths = np.asarray(
         sample_trajectories(key, post.weights, query, num_samples, num_dofs=D, num_basis=result.num_basis, width=result.width)
     )
