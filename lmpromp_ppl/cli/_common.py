@@ -1,4 +1,4 @@
-"""Helpers shared by the sub-commands: option checks, output targets and progress.
+"""Helpers shared by the sub-commands: option checks, output targets, engine warnings.
 
 Numeric options are checked when the command line is parsed, before any work:
 integers with typer's ``min=``/``max=`` ranges (``min=1`` for counts,
@@ -25,7 +25,7 @@ import typer
 from lmpromp_ppl.errors import ConvergenceWarning, LmprompError
 
 __all__ = [
-    "SEED_MAX", "SEED_HELP", "positive", "non_negative", "open_fraction", "prepare_out_dir", "prepare_out_file",
+    "SEED_MAX", "SEED_HELP", "positive", "open_fraction", "prepare_out_dir", "prepare_out_file",
     "make_dirs", "remove_created_dirs", "start_recording", "stop_recording", "caught_convergence_warnings",
 ]
 
@@ -47,8 +47,6 @@ def _float_check(requirement: str, accept):
 
 #: ``callback=`` of a float option that must be finite and > 0.
 positive = _float_check("a positive number", lambda x: x > 0)
-#: ``callback=`` of a float option that must be finite and >= 0.
-non_negative = _float_check("a number >= 0", lambda x: x >= 0)
 #: ``callback=`` of a float option that must lie strictly between 0 and 1.
 open_fraction = _float_check("strictly between 0 and 1", lambda x: 0 < x < 1)
 
@@ -119,7 +117,7 @@ def prepare_out_file(out: Path, force: bool) -> Path:
     return out
 
 
-# --------------------------------------------------------------------------- progress and warnings
+# --------------------------------------------------------------------------- engine warnings
 @contextmanager
 def caught_convergence_warnings():
     """Collect the engines' ConvergenceWarning messages instead of printing them; re-emit other warnings.
