@@ -251,9 +251,9 @@ class FitResult:
             return self.draws
         if self.sampler is None:
             raise LmprompError("this result holds neither draws nor a sampler")
-        import jax
+        from lmpromp_ppl._keys import DRAWS, seed_key
 
-        key = jax.random.key(0) if key is None else key
+        key = seed_key(self.seed, DRAWS) if key is None else key
         raw = self.sampler(key, num_draws)
         self.draws = {k: np.asarray(v)[None] for k, v in raw.items()}
         return self.draws
@@ -272,6 +272,7 @@ class FitResult:
         """
         import jax
 
+        from lmpromp_ppl._keys import POSTERIOR_PREDICTIVE, seed_key
         from lmpromp_ppl.basis import design_matrix
 
         if not self.observed:
@@ -282,7 +283,7 @@ class FitResult:
             w = w[:, :num_draws]
         beta = np.asarray(draws["beta"])[:, : w.shape[1], None, None] if "beta" in draws else self.hyper.beta
         t, y = np.asarray(self.observed["t"]), np.asarray(self.observed["y"])
-        key = jax.random.key(0) if key is None else key
+        key = seed_key(self.seed, POSTERIOR_PREDICTIVE) if key is None else key
         noise = np.asarray(jax.random.normal(key, w.shape[:2] + y.shape))
         out = np.full(w.shape[:2] + y.shape, np.nan)
         for i in range(t.shape[0]):
@@ -304,6 +305,10 @@ class FitResult:
         ``max_draw_bytes`` thins the draw-indexed groups evenly along ``draw``
         (:func:`kept_draws`); ``None`` keeps every draw.
         """
+        import jax
+
+        from lmpromp_ppl._keys import POSTERIOR_PREDICTIVE
+
         draws = self.posterior_draws(num_draws, key)
         keep = None if max_draw_bytes is None else kept_draws(draws, max_draw_bytes)
         sample_stats = self.sample_stats
@@ -335,8 +340,10 @@ class FitResult:
         if self.observed:
             groups["observed_data"] = _dataset(self.observed, ())
         if posterior_predictive:
+            # not the key of the draws: the noise must be independent of them
+            noise_key = None if key is None else jax.random.fold_in(key, POSTERIOR_PREDICTIVE)
             groups["posterior_predictive"] = _dataset(
-                {"y": self.posterior_predictive(key, draws=draws)}, ("chain", "draw")
+                {"y": self.posterior_predictive(noise_key, draws=draws)}, ("chain", "draw")
             ).assign_coords(draw_coord)
         if self.engine == "cavi" and self.state is not None and hasattr(self.state, "_asdict"):
             groups["variational"] = _state_dataset(self.state)

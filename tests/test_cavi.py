@@ -11,7 +11,9 @@
   ConvergenceWarning; input validation.
 """
 
+import io
 import math
+import sys
 import warnings
 
 import jax
@@ -486,16 +488,24 @@ def test_restarts_keep_the_best_elbo(small):
     assert fit.seconds > 0 and fit.compile_seconds >= 0
 
 
-def test_max_iter_warns_and_progress_chunks_agree(small):
+def test_max_iter_warns_and_progress_chunks_agree(small, monkeypatch):
     # 100 sweeps from the start do not reach a relative change of 1e-14; with progress the
     # loop runs in two chunks of 50 that must continue exactly where the first stopped
     with pytest.warns(ConvergenceWarning):
         fit = cavi.fit_cavi(small["missing"], HYPER, jax.random.key(0), max_iter=100, tol=1e-14)
     assert fit.iterations == 100 and not fit.converged and fit.elbo_trace.shape == (100,)
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    terminal = Terminal()
+    monkeypatch.setattr(sys, "stderr", terminal)  # progress bars are drawn on a terminal only
     with pytest.warns(ConvergenceWarning):
         chunked = cavi.fit_cavi(
             small["missing"], HYPER, jax.random.key(0), max_iter=100, tol=1e-14, progress=True
         )
+    assert "50/100" in terminal.getvalue()  # the bar after the first chunk
     np.testing.assert_allclose(chunked.elbo_trace, fit.elbo_trace, rtol=1e-12)
 
 

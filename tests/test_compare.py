@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import re
 
@@ -27,11 +29,39 @@ def _strict_json(text: str) -> dict:
 
 
 @pytest.fixture(scope="module")
-def report_dir(tmp_path_factory):
+def compare_run(tmp_path_factory):
+    """One run with its progress output (stdout, stderr: no terminal)."""
     out = tmp_path_factory.mktemp("compare") / "report"
-    rc = main(["compare", DATASET, "--engines", "cavi,nuts", "--out", str(out), "--quiet", *TINY])
-    assert rc == 0
-    return out
+    stdout, stderr = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
+        rc = main(["compare", DATASET, "--engines", "cavi,nuts", "--out", str(out), *TINY])
+    assert rc == 0, stderr.getvalue()
+    return out, stdout.getvalue(), stderr.getvalue()
+
+
+@pytest.fixture(scope="module")
+def report_dir(compare_run):
+    return compare_run[0]
+
+
+def test_progress_says_done_for_every_engine_and_ends_once(compare_run):
+    out, stdout, stderr = compare_run
+    assert "\r" not in stdout + stderr  # no progress bars outside a terminal
+    assert "Traceback" not in stderr and "Warning:" not in stderr
+    for engine in ("cavi", "nuts"):
+        assert len(re.findall(rf"\] {engine} done in \d+\.\d s$", stderr, flags=re.M)) == 1, (engine, stderr)
+    lines = stdout.strip().splitlines()
+    assert len(lines) == 1 and f"report in {out}/report.html" in lines[0]
+    assert "report.html" not in stderr and "wrote" not in stderr  # the final line is said once, on stdout
+    assert re.search(r"NUTS max R-hat \d\.\d{3}, \d+ divergences", lines[0]), lines[0]
+
+
+def test_report_rounds_rhat_and_ess(report_dir):
+    md = (report_dir / "report.md").read_text()
+    start = md.index("| quantity | max R-hat | min bulk ESS | min tail ESS |")
+    rows = md[start:].split("\n\n")[0].splitlines()[2:]  # the NUTS reliability table's body
+    assert len(rows) >= 2 and all(re.fullmatch(r"\| \S+ \| \d\.\d{3} \| \d+ \| \d+ \|", r) for r in rows), rows
+    assert not re.search(r"\d\.\d{7,}", md + (report_dir / "report.html").read_text())
 
 
 def test_compare_writes_every_file(report_dir):

@@ -39,8 +39,27 @@ def _register() -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``lmpromp`` console script."""
+    """Entry point of the ``lmpromp`` console script.
+
+    A failed command leaves none of the directories it created empty behind
+    (:func:`lmpromp_ppl.cli._common.remove_created_dirs`).
+    """
+    from lmpromp_ppl.cli._common import remove_created_dirs, start_recording, stop_recording
+
     _register()
+    start_recording()
+    status = 1
+    try:
+        status = _run(argv)
+    finally:
+        if status != 0:
+            remove_created_dirs()
+        else:
+            stop_recording()
+    return status
+
+
+def _run(argv: list[str] | None) -> int:
     try:
         app(args=argv, standalone_mode=False)
     except LmprompError as exc:

@@ -8,7 +8,7 @@ from pathlib import Path
 import typer
 
 from lmpromp_ppl.cli import app
-from lmpromp_ppl.cli._common import prepare_out_file
+from lmpromp_ppl.cli._common import SEED_HELP, SEED_MAX, positive, prepare_out_file
 
 __all__ = ["bench_command"]
 
@@ -18,13 +18,13 @@ def bench_command(
     out: Path = typer.Option(..., "--out", help="Output JSON file."),
     quick: bool = typer.Option(False, "--quick", help="Only the default row (every engine); no batch row."),
     device: str = typer.Option("cpu", "--device", help="cpu or gpu (jax's default backend must match)."),
-    svi_budget: float = typer.Option(20.0, "--svi-budget", help="SVI: optimisation seconds per guide and row."),
-    svi_steps: int = typer.Option(20000, "--svi-steps", help="SVI: step budget per guide and row."),
-    cavi_budget: float = typer.Option(60.0, "--cavi-budget", help="CAVI: seconds per fit when max_iter sweeps would take longer."),
-    batch_size: int = typer.Option(1000, "--batch-size", help="Datasets of the batched-CAVI row (0 skips it)."),
+    svi_budget: float = typer.Option(20.0, "--svi-budget", callback=positive, help="SVI: optimisation seconds per guide and row."),
+    svi_steps: int = typer.Option(20000, "--svi-steps", min=1, help="SVI: step budget per guide and row."),
+    cavi_budget: float = typer.Option(60.0, "--cavi-budget", callback=positive, help="CAVI: seconds per fit when max_iter sweeps would take longer."),
+    batch_size: int = typer.Option(1000, "--batch-size", min=0, help="Datasets of the batched-CAVI row (0 skips it)."),
     no_baseline: bool = typer.Option(False, "--no-baseline", help="Skip the ProMP baseline on LASA."),
     gpu_note: str = typer.Option("", "--gpu-note", help="On a CPU run: why no GPU run accompanies it."),
-    seed: int = typer.Option(0, help="Seed for every random choice."),
+    seed: int = typer.Option(0, min=0, max=SEED_MAX, help=SEED_HELP),
     force: bool = typer.Option(False, "--force", help="Overwrite an existing output file."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
 ) -> None:
@@ -34,14 +34,6 @@ def bench_command(
 
     if device not in ("cpu", "gpu"):
         raise LmprompError(f"--device must be cpu or gpu, got {device!r}")
-    if not svi_budget > 0:
-        raise LmprompError(f"--svi-budget must be positive, got {svi_budget}")
-    if not cavi_budget > 0:
-        raise LmprompError(f"--cavi-budget must be positive, got {cavi_budget}")
-    if svi_steps < 1:
-        raise LmprompError(f"--svi-steps must be >= 1, got {svi_steps}")
-    if batch_size < 0:
-        raise LmprompError(f"--batch-size must be >= 0, got {batch_size}")
     target = prepare_out_file(out, force)
     config = BenchConfig(
         rows=(DEFAULT_ROW,) if quick else (DEFAULT_ROW,) + SCALING_ROWS,

@@ -8,6 +8,7 @@ from typing import Optional
 import typer
 
 from lmpromp_ppl.cli import app
+from lmpromp_ppl.cli._common import SEED_HELP, SEED_MAX
 
 __all__ = ["compare_command"]
 
@@ -18,21 +19,22 @@ def compare_command(
     out: Path = typer.Option(..., "--out", help="Output directory (report.md, report.html, metrics.json, figures, <engine>/posterior.nc)."),
     model: str = typer.Option("lmpromp", help="promp, lmpromp or mixture."),
     engines: str = typer.Option("cavi,svi,nuts", help="Comma-separated engines; 'svi' means all three SVI guides; nuts is required (the reference)."),
-    latent_dim: Optional[int] = typer.Option(None, "--latent-dim", "-V", help="Latent dimension V."),
-    components: Optional[int] = typer.Option(None, "--components", "-K", help="Mixture components K."),
-    num_basis: int = typer.Option(10, "--num-basis", "-J", help="Basis functions per DoF."),
+    latent_dim: Optional[int] = typer.Option(None, "--latent-dim", "-V", min=1, help="Latent dimension V."),
+    components: Optional[int] = typer.Option(None, "--components", "-K", min=1, help="Mixture components K."),
+    num_basis: int = typer.Option(10, "--num-basis", "-J", min=2, help="Basis functions per DoF."),
     preset_name: str = typer.Option("proper", "--preset", help="Hyperparameter preset shared by every engine."),
-    chains: Optional[int] = typer.Option(None, help="NUTS: chains."),
-    warmup: Optional[int] = typer.Option(None, help="NUTS: warm-up iterations per chain."),
-    samples: Optional[int] = typer.Option(None, help="NUTS: draws per chain."),
-    steps: Optional[int] = typer.Option(None, help="SVI: maximum optimisation steps."),
-    draws: int = typer.Option(1000, help="Draws per VI engine (compared and saved)."),
-    seed: int = typer.Option(0, help="Seed for every random choice."),
+    chains: Optional[int] = typer.Option(None, min=1, help="NUTS: chains."),
+    warmup: Optional[int] = typer.Option(None, min=0, help="NUTS: warm-up iterations per chain."),
+    samples: Optional[int] = typer.Option(None, min=1, help="NUTS: draws per chain."),
+    steps: Optional[int] = typer.Option(None, min=1, help="SVI: maximum optimisation steps."),
+    draws: int = typer.Option(1000, min=100, max=100_000, help="Draws per VI engine (compared and saved)."),
+    seed: int = typer.Option(0, min=0, max=SEED_MAX, help=SEED_HELP),
     force: bool = typer.Option(False, "--force", help="Overwrite the files of an existing report."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
 ) -> None:
     """Fit MODEL to DATASET with every engine (shared hyperparameters) and compare each VI engine with NUTS."""
     from lmpromp_ppl.reports import compare
+    from lmpromp_ppl.reports.render import format_rhat
 
     metrics = compare(
         dataset, model, engines, out_dir=out, latent_dim=latent_dim, num_components=components,
@@ -41,5 +43,5 @@ def compare_command(
     )
     if not quiet:
         nuts = metrics["engines"]["nuts"]
-        typer.echo(f"{model} on {metrics['dataset']}: NUTS max R-hat {nuts['rhat_max']}, "
+        typer.echo(f"{model} on {metrics['dataset']}: NUTS max R-hat {format_rhat(nuts['rhat_max'])}, "
                    f"{nuts['divergences']} divergences; report in {out}/report.html")

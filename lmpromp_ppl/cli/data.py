@@ -21,7 +21,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from lmpromp_ppl.cli import app
-from lmpromp_ppl.cli._common import prepare_out_file
+from lmpromp_ppl.cli._common import SEED_MAX, prepare_out_file
 from lmpromp_ppl.data.core import Demonstrations
 from lmpromp_ppl.data.registry import list_datasets, load_dataset
 from lmpromp_ppl.errors import LmprompError
@@ -139,7 +139,7 @@ def show_command(
     out: Path = typer.Option(..., "--out", help="Image file to write (.png, .pdf, .svg)."),
     force: bool = typer.Option(False, "--force", help="Overwrite an existing --out."),
     quiet: bool = typer.Option(False, "--quiet", help="Do not print the summary line."),
-    seed: int | None = typer.Option(None, "--seed", help="Seed of a synthetic generator."),
+    seed: int | None = typer.Option(None, "--seed", min=0, max=SEED_MAX, help="Seed of a synthetic generator."),
     phase: bool = typer.Option(False, "--phase", help="Plot over the phase in [0, 1] instead of time."),
     plane: bool = typer.Option(
         True, "--plane/--no-plane", help="Two-DoF data: add the path in the plane (x vs y, equal aspect)."

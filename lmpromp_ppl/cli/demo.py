@@ -12,7 +12,7 @@ from pathlib import Path
 import typer
 
 from lmpromp_ppl.cli import app
-from lmpromp_ppl.cli._common import prepare_out_dir
+from lmpromp_ppl.cli._common import SEED_HELP, SEED_MAX, prepare_out_dir
 
 __all__ = ["DEMO_DATASET", "demo_command"]
 
@@ -23,9 +23,9 @@ DEMO_DATASET = "lasa:GShape?every=20"
 @app.command("demo")
 def demo_command(
     out: Path = typer.Option(Path("demo-output"), "--out", help="Output directory."),
-    latent_dim: int = typer.Option(2, "--latent-dim", "-V", help="Latent dimension V."),
+    latent_dim: int = typer.Option(2, "--latent-dim", "-V", min=1, help="Latent dimension V."),
     engines: str = typer.Option("cavi,svi,nuts", help="Engines to compare (nuts is the reference)."),
-    seed: int = typer.Option(0, help="Seed for every random choice."),
+    seed: int = typer.Option(0, min=0, max=SEED_MAX, help=SEED_HELP),
     force: bool = typer.Option(False, "--force", help="Overwrite the files of an existing output."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
 ) -> None:

@@ -8,9 +8,9 @@ from typing import Optional
 import typer
 
 from lmpromp_ppl.cli import app
-from lmpromp_ppl.cli._common import prepare_out_dir
+from lmpromp_ppl.cli._common import SEED_HELP, SEED_MAX, caught_convergence_warnings, positive, prepare_out_dir
 
-__all__ = ["fit_command", "hyper_from_options"]
+__all__ = ["convergence_note", "fit_command", "hyper_from_options"]
 
 
 def hyper_from_options(
@@ -35,31 +35,62 @@ def hyper_from_options(
     return preset(preset_name, **changes)
 
 
+def convergence_note(result, messages: list[str]) -> str:
+    """``did not converge in N sweeps (...)`` for a fit that stopped at its limit; ``""`` otherwise.
+
+    ``messages`` are the engine's ConvergenceWarning texts, used when the summary
+    does not say more.
+    """
+    s = result.summary
+    if s.get("converged") is not False:
+        return "; ".join(messages)
+    n = s.get("iterations")
+    if result.engine == "cavi":
+        import inspect
+
+        from lmpromp_ppl.inference import cavi
+
+        fit_fn = cavi.fit_cavi_mixture if result.model == "mixture" else cavi.fit_cavi
+        tol = result.options.get("tol", inspect.signature(fit_fn).parameters["tol"].default)
+        trace = s.get("elbo_trace") or []
+        unit = "sweep" if n == 1 else "sweeps"
+        if len(trace) >= 2 and trace[-1] != 0:
+            change = abs(trace[-1] - trace[-2]) / abs(trace[-1])
+            return f"did not converge in {n} {unit} (relative ELBO change {change:.2g} > tol {tol:g})"
+        return f"did not converge in {n} {unit} (tol {tol:g})"
+    stop_tol = (getattr(result.state, "options", None) or {}).get("stop_tol")
+    detail = f" (smoothed loss still changing by more than {stop_tol:g})" if stop_tol is not None else ""
+    return f"did not converge in {n} steps{detail}; raise --steps"
+
+
 @app.command("fit")
 def fit_command(
     dataset: str = typer.Argument(..., help="Dataset string (lasa:GShape, gunpoint, 'synthetic:latent?L=20&seed=0', file.npz); quote it when it holds ? or &."),
     out: Path = typer.Option(..., "--out", help="Output directory (posterior.nc, summary.json)."),
     model: str = typer.Option("lmpromp", help="promp, lmpromp or mixture."),
     engine: str = typer.Option("cavi", help="cavi, nuts, svi_meanfield, svi_autonormal or svi_lowrank."),
-    latent_dim: Optional[int] = typer.Option(None, "--latent-dim", "-V", help="Latent dimension V."),
-    components: Optional[int] = typer.Option(None, "--components", "-K", help="Mixture components K."),
-    num_basis: int = typer.Option(10, "--num-basis", "-J", help="Basis functions per DoF."),
+    latent_dim: Optional[int] = typer.Option(None, "--latent-dim", "-V", min=1, help="Latent dimension V."),
+    components: Optional[int] = typer.Option(None, "--components", "-K", min=1, help="Mixture components K."),
+    num_basis: int = typer.Option(10, "--num-basis", "-J", min=2, help="Basis functions per DoF."),
     preset_name: Optional[str] = typer.Option(None, "--preset", help="Hyperparameter preset: thesis or proper (default: thesis for CAVI, proper otherwise)."),
-    beta: Optional[float] = typer.Option(None, help="Observation precision beta (standardised units)."),
+    beta: Optional[float] = typer.Option(None, callback=positive, help="Observation precision beta (standardised units)."),
     learn_beta: bool = typer.Option(False, "--learn-beta", help="Infer beta under its Gamma prior."),
-    max_iter: Optional[int] = typer.Option(None, "--max-iter", help="CAVI: maximum iterations."),
-    tol: Optional[float] = typer.Option(None, help="CAVI: relative ELBO tolerance."),
-    restarts: Optional[int] = typer.Option(None, help="CAVI: restarts, best ELBO kept."),
-    chains: Optional[int] = typer.Option(None, help="NUTS: chains."),
-    warmup: Optional[int] = typer.Option(None, help="NUTS: warm-up iterations per chain."),
-    samples: Optional[int] = typer.Option(None, help="NUTS: draws per chain."),
-    steps: Optional[int] = typer.Option(None, help="SVI: maximum optimisation steps."),
-    learning_rate: Optional[float] = typer.Option(None, "--learning-rate", help="SVI: Adam learning rate."),
-    seed: int = typer.Option(0, help="Seed for every random choice."),
+    max_iter: Optional[int] = typer.Option(None, "--max-iter", min=1, help="CAVI: maximum iterations."),
+    tol: Optional[float] = typer.Option(None, callback=positive, help="CAVI: relative ELBO tolerance."),
+    restarts: Optional[int] = typer.Option(None, min=1, help="CAVI: restarts, best ELBO kept."),
+    chains: Optional[int] = typer.Option(None, min=1, help="NUTS: chains."),
+    warmup: Optional[int] = typer.Option(None, min=0, help="NUTS: warm-up iterations per chain."),
+    samples: Optional[int] = typer.Option(None, min=1, help="NUTS: draws per chain."),
+    steps: Optional[int] = typer.Option(None, min=1, help="SVI: maximum optimisation steps."),
+    learning_rate: Optional[float] = typer.Option(None, "--learning-rate", callback=positive, help="SVI: Adam learning rate."),
+    seed: int = typer.Option(0, min=0, max=SEED_MAX, help=SEED_HELP),
     force: bool = typer.Option(False, "--force", help="Overwrite an existing output directory."),
-    quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
+    quiet: bool = typer.Option(False, "--quiet", help="No output but errors (no progress, no result line)."),
 ) -> None:
-    """Fit MODEL to DATASET with ENGINE and write DIR/posterior.nc and DIR/summary.json."""
+    """Fit MODEL to DATASET with ENGINE and write DIR/posterior.nc and DIR/summary.json.
+
+    Prints one result line; a fit that stopped at its iteration limit says so in it.
+    """
     from lmpromp_ppl.api import fit
 
     hyper = hyper_from_options(preset_name or ("thesis" if engine == "cavi" else "proper"), latent_dim, components, beta, learn_beta)
@@ -70,10 +101,13 @@ def fit_command(
     }
     options = {k: v for k, v in options.items() if v is not None}
     out_dir = prepare_out_dir(out, force)
-    result = fit(dataset, model=model, engine=engine, hyper=hyper, num_basis=num_basis, seed=seed,
-                 progress=not quiet, **options)
-    result.save(out_dir, force=True, key=None)
+    with caught_convergence_warnings() as messages:
+        result = fit(dataset, model=model, engine=engine, hyper=hyper, num_basis=num_basis, seed=seed,
+                     progress=not quiet, **options)
+    result.save(out_dir, force=True)  # draws from q keyed by the seed
     if not quiet:
         s = result.summary_dict()
-        elbo = "" if s["elbo"] is None else f", ELBO {s['elbo']:.4g}"
-        typer.echo(f"{model}/{engine} on {dataset}: {s['seconds']:.2f} s{elbo}; wrote {out_dir}")
+        elbo = "" if s["elbo"] is None else f", ELBO {s['elbo']:.6g}"
+        note = convergence_note(result, messages)
+        note = f"; {note}" if note else ""
+        typer.echo(f"{model}/{engine} on {dataset}: {s['seconds']:.3g} s{elbo}{note}; wrote {out_dir}")

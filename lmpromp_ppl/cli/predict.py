@@ -9,8 +9,8 @@ import numpy as np
 import typer
 
 from lmpromp_ppl.cli import app
-from lmpromp_ppl.cli._common import prepare_out_dir
-from lmpromp_ppl.errors import DataError
+from lmpromp_ppl.cli._common import SEED_MAX, positive, prepare_out_dir
+from lmpromp_ppl.errors import DataError, LmprompError
 
 __all__ = ["predict_command", "read_observation"]
 
@@ -61,12 +61,12 @@ def predict_command(
     fit_dir: Path = typer.Argument(..., help="Directory written by `lmpromp fit`."),
     observe: Path = typer.Option(..., "--observe", help="Observed (partial) demonstration: .npz with t (T,), y (T, D) or .csv; NaN = unobserved."),
     out: Path = typer.Option(..., "--out", help="Output directory (prediction.npz, prediction.png)."),
-    duration: Optional[float] = typer.Option(None, help="Map times to phases as t / duration (default: t are phases)."),
-    noise_sd: Optional[float] = typer.Option(None, "--noise-sd", help="Observation noise s.d. in data units (default: the fit's, from its learned beta)."),
+    duration: Optional[float] = typer.Option(None, callback=positive, help="Map times to phases as t / duration (default: t are phases)."),
+    noise_sd: Optional[float] = typer.Option(None, "--noise-sd", callback=positive, help="Observation noise s.d. in data units (default: the fit's, from its learned beta)."),
     bayesian: bool = typer.Option(True, "--bayesian/--plug-in", help="Average over posterior draws (default) or plug in the posterior mean."),
     exact: bool = typer.Option(True, "--exact/--thesis-approximation", help="Exact p(w|o) (default) or the thesis's approximation, eqs. 4.6-4.7."),
-    samples: int = typer.Option(20, help="Sampled trajectories to store."),
-    seed: int = typer.Option(0, help="Seed for the sampled trajectories."),
+    samples: int = typer.Option(20, min=1, help="Sampled trajectories to store."),
+    seed: int = typer.Option(0, min=0, max=SEED_MAX, help=f"Seed for the sampled trajectories (0 to {SEED_MAX})."),
     force: bool = typer.Option(False, "--force", help="Overwrite existing output files."),
     quiet: bool = typer.Option(False, "--quiet", help="No output but errors."),
 ) -> None:
@@ -78,11 +78,13 @@ def predict_command(
     from lmpromp_ppl.predict.from_fit import predict_from_fit
     from lmpromp_ppl.results import load
 
+    if not fit_dir.exists():
+        raise LmprompError(f"fit directory {fit_dir} does not exist; write one with `lmpromp fit ... --out {fit_dir}`")
+    if not fit_dir.is_dir():
+        raise LmprompError(f"{fit_dir} is not a directory; pass the directory written by `lmpromp fit`")
     result = load(fit_dir)
     t, y = read_observation(observe, result.num_dofs)
     if duration is not None:
-        if not duration > 0:
-            raise DataError(f"--duration must be positive, got {duration}")
         phase = t / duration
     else:
         phase = t

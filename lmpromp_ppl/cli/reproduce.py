@@ -7,7 +7,7 @@ from pathlib import Path
 import typer
 
 from lmpromp_ppl.cli import app
-from lmpromp_ppl.cli._common import prepare_out_dir
+from lmpromp_ppl.cli._common import SEED_HELP, SEED_MAX, prepare_out_dir
 
 __all__ = ["reproduce_command"]
 
@@ -19,7 +19,7 @@ def reproduce_command(
     ),
     out: Path = typer.Option(..., "--out", help="Output directory (JSON, markdown, PNG, claims.md)."),
     quick: bool = typer.Option(False, "--quick", help="Tiny sizes (seconds per experiment), for tests."),
-    seed: int = typer.Option(0, "--seed", help="Seed for every random choice."),
+    seed: int = typer.Option(0, "--seed", min=0, max=SEED_MAX, help=SEED_HELP),
     force: bool = typer.Option(False, "--force", help="Write into an existing non-empty directory."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
 ) -> None:

@@ -10,6 +10,7 @@ from typing import Optional
 import typer
 
 from lmpromp_ppl.cli import app
+from lmpromp_ppl.cli._common import SEED_MAX, make_dirs, open_fraction, positive
 from lmpromp_ppl.errors import LmprompError
 
 __all__ = ["sbc_command", "sweep_command", "parse_engines"]
@@ -44,7 +45,7 @@ def _out_dir(out: Path, force: bool, resume: bool) -> Path:
             )
         if force and not resume and (out / "tasks").is_dir():
             shutil.rmtree(out / "tasks")
-    out.mkdir(parents=True, exist_ok=True)
+    make_dirs(out)
     return out
 
 
@@ -74,24 +75,24 @@ def sbc_command(
     out: Path = typer.Option(..., "--out", help="Report directory (figures, uniformity.md, calibration.json, tasks/)."),
     models: str = typer.Option("lmpromp,promp", "--models", help="Comma list of lmpromp and promp."),
     engines: str = typer.Option("auto", help="Comma list of engines ('svi' = all SVI guides; engines not offered for a model are skipped), or auto: lmpromp cavi,nuts,svi_meanfield; promp nuts,svi_autonormal."),
-    replicates: int = typer.Option(100, help="Simulated datasets per engine (NUTS, SVI)."),
-    cavi_replicates: Optional[int] = typer.Option(None, "--cavi-replicates", help="Simulated datasets for CAVI (default: --replicates)."),
-    svi_replicates: Optional[int] = typer.Option(None, "--svi-replicates", help="Simulated datasets per SVI engine (default: --replicates)."),
-    cavi_batch: int = typer.Option(50, "--cavi-batch", help="CAVI replicates per vmapped task."),
-    draws: int = typer.Option(99, help="Posterior draws per replicate (ranks lie in 0..draws)."),
-    demos: int = typer.Option(8, help="Demonstrations per dataset (L)."),
-    dofs: int = typer.Option(1, help="Degrees of freedom (D)."),
-    num_basis: int = typer.Option(5, "--num-basis", "-J", help="Basis functions per DoF (J)."),
-    steps: int = typer.Option(20, help="Observed phases per demonstration (T)."),
-    latent_dim: int = typer.Option(2, "--latent-dim", "-V", help="Latent dimension V (LMProMP)."),
-    beta: float = typer.Option(100.0, help="Observation precision beta."),
-    warmup: int = typer.Option(300, help="NUTS: warm-up iterations per chain (2 chains)."),
-    samples: int = typer.Option(300, help="NUTS: draws per chain before thinning to --draws."),
-    svi_steps: int = typer.Option(5000, "--svi-steps", help="SVI: maximum optimisation steps."),
-    vsbc_simulations: int = typer.Option(20, "--vsbc-simulations", help="numpyro vsbc_diagnostic simulations per model (0: skip)."),
+    replicates: int = typer.Option(100, min=1, help="Simulated datasets per engine (NUTS, SVI)."),
+    cavi_replicates: Optional[int] = typer.Option(None, "--cavi-replicates", min=1, help="Simulated datasets for CAVI (default: --replicates)."),
+    svi_replicates: Optional[int] = typer.Option(None, "--svi-replicates", min=1, help="Simulated datasets per SVI engine (default: --replicates)."),
+    cavi_batch: int = typer.Option(50, "--cavi-batch", min=1, help="CAVI replicates per vmapped task."),
+    draws: int = typer.Option(99, min=1, help="Posterior draws per replicate (ranks lie in 0..draws)."),
+    demos: int = typer.Option(8, min=1, help="Demonstrations per dataset (L)."),
+    dofs: int = typer.Option(1, min=1, help="Degrees of freedom (D)."),
+    num_basis: int = typer.Option(5, "--num-basis", "-J", min=2, help="Basis functions per DoF (J)."),
+    steps: int = typer.Option(20, min=1, help="Observed phases per demonstration (T)."),
+    latent_dim: int = typer.Option(2, "--latent-dim", "-V", min=1, help="Latent dimension V (LMProMP)."),
+    beta: float = typer.Option(100.0, callback=positive, help="Observation precision beta."),
+    warmup: int = typer.Option(300, min=0, help="NUTS: warm-up iterations per chain (2 chains)."),
+    samples: int = typer.Option(300, min=1, help="NUTS: draws per chain before thinning to --draws."),
+    svi_steps: int = typer.Option(5000, "--svi-steps", min=1, help="SVI: maximum optimisation steps."),
+    vsbc_simulations: int = typer.Option(20, "--vsbc-simulations", min=0, help="numpyro vsbc_diagnostic simulations per model (0: skip)."),
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Address of an existing dask scheduler (default: a LocalCluster on 127.0.0.1)."),
-    workers: int = typer.Option(2, help="LocalCluster worker processes."),
-    seed: int = typer.Option(0, help="Seed of the simulations, fits and PIT jitter."),
+    workers: int = typer.Option(2, min=1, help="LocalCluster worker processes."),
+    seed: int = typer.Option(0, min=0, max=SEED_MAX, help=f"Seed of the simulations, fits and PIT jitter (0 to {SEED_MAX})."),
     resume: bool = typer.Option(False, "--resume", help="Continue an existing DIR: finished tasks are not recomputed."),
     force: bool = typer.Option(False, "--force", help="Start over in an existing DIR (deletes DIR/tasks)."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress output."),
@@ -145,12 +146,12 @@ def sweep_command(
     grid: list[str] = typer.Option(..., "--grid", help="NAME=V1,V2 (repeatable): hyperparameter fields or num_basis."),
     metric: str = typer.Option("lpd", help="Held-out metric to rank by: lpd (higher is better) or rmse."),
     preset_name: str = typer.Option("thesis", "--preset", help="Hyperparameter preset the grid changes."),
-    num_basis: int = typer.Option(10, "--num-basis", "-J", help="Basis functions per DoF (unless in the grid)."),
-    test_fraction: float = typer.Option(0.25, "--test-fraction", help="Fraction of demonstrations held out."),
-    max_iter: int = typer.Option(2000, "--max-iter", help="CAVI: maximum sweeps."),
+    num_basis: int = typer.Option(10, "--num-basis", "-J", min=2, help="Basis functions per DoF (unless in the grid)."),
+    test_fraction: float = typer.Option(0.25, "--test-fraction", callback=open_fraction, help="Fraction of demonstrations held out."),
+    max_iter: int = typer.Option(2000, "--max-iter", min=1, help="CAVI: maximum sweeps."),
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Address of an existing dask scheduler (default: a LocalCluster on 127.0.0.1)."),
-    workers: int = typer.Option(2, help="LocalCluster worker processes."),
-    seed: int = typer.Option(0, help="Seed of the split and the fits."),
+    workers: int = typer.Option(2, min=1, help="LocalCluster worker processes."),
+    seed: int = typer.Option(0, min=0, max=SEED_MAX, help=f"Seed of the split and the fits (0 to {SEED_MAX})."),
     resume: bool = typer.Option(False, "--resume", help="Continue an existing DIR: finished tasks are not recomputed."),
     force: bool = typer.Option(False, "--force", help="Start over in an existing DIR (deletes DIR/tasks)."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress output."),

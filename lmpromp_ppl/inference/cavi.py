@@ -63,6 +63,7 @@ from jax import Array
 from jax.scipy.linalg import cho_solve
 from jax.scipy.special import digamma, gammaln
 
+from lmpromp_ppl._progress import show_progress_bars
 from lmpromp_ppl.data.core import ModelData
 from lmpromp_ppl.errors import ConvergenceWarning, DataError, LmprompError
 from lmpromp_ppl.models.hyper import Hyperparameters
@@ -784,6 +785,7 @@ def _run_one(
 
     ``step_fn``: the sweep (default :func:`step`), see :func:`_iterate`.
     """
+    progress = show_progress_bars(progress)
     chunk = min(max_iter, 50) if progress else max_iter
     tol_arr = jnp.asarray(tol, jnp.float64)
     previous = jnp.asarray(-jnp.inf)
@@ -851,7 +853,7 @@ def fit_cavi(
     tol : stop when the relative ELBO change is below ``tol``
     max_iter : maximum number of sweeps per start (warns with ConvergenceWarning when hit)
     num_restarts : number of starts
-    progress : show a progress bar (tqdm) updated every 50 sweeps
+    progress : show a progress bar (tqdm) updated every 50 sweeps, when stderr is a terminal
     shared_psi : see :func:`prepare_cavi_data`
     family : ``"columnwise"`` (the thesis's isotropic q(m_v), default) or
         ``"rowwise"`` (rows of M share one V x V covariance), see

@@ -20,6 +20,7 @@ from typing import NamedTuple
 import jax
 import numpy as np
 
+from lmpromp_ppl._keys import PREDICTION, seed_key
 from lmpromp_ppl.errors import DataError
 from lmpromp_ppl.predict.conditioning import condition, condition_draws
 from lmpromp_ppl.predict.observations import empty_observation, observe
@@ -81,6 +82,7 @@ def predict_from_fit(
         thesis's approximation, eqs. 4.6-4.7
     num_phases : predict at this many equally spaced phases in [0, 1] ...
     query : ... or at these phases
+    key : PRNG key of the sampled trajectories; default: derived from the fit's seed
     """
     values = np.asarray(values, dtype=float)
     phase = np.asarray(phase, dtype=float)
@@ -113,7 +115,7 @@ def predict_from_fit(
         post = condition(result.model, result.point, obs, gamma, exact=exact)
     query = np.linspace(0.0, 1.0, num_phases) if query is None else np.asarray(query, dtype=float)
     traj = trajectory_distribution(post.weights, query, num_dofs=D, num_basis=result.num_basis, width=result.width)
-    key = jax.random.key(0) if key is None else key
+    key = seed_key(result.seed, PREDICTION) if key is None else key
     paths = np.asarray(
         sample_trajectories(key, post.weights, query, num_samples, num_dofs=D, num_basis=result.num_basis, width=result.width)
     )

@@ -297,5 +297,4 @@ def compare(
         result.save(out / name, force=True, num_draws=num_draws, max_draw_bytes=REPORT_DRAW_BYTES)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2, allow_nan=False) + "\n")
     write_report(out, metrics, results, details, raw)
-    say(f"wrote {out}/report.md, report.html, metrics.json")
-    return metrics
+    return metrics  # the caller prints the final line (where the report is)

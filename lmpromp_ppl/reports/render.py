@@ -10,10 +10,48 @@ from __future__ import annotations
 
 import base64
 import html
+import math
+import numbers
 from pathlib import Path
 from typing import NamedTuple, Sequence, Union
 
-__all__ = ["Heading", "Paragraph", "Alert", "Table", "Figure", "Block", "to_markdown", "to_html"]
+__all__ = ["Heading", "Paragraph", "Alert", "Table", "Figure", "Block", "to_markdown", "to_html",
+           "format_number", "format_rhat", "format_ess"]
+
+MISSING = "–"
+
+
+def format_number(x, digits: int = 3) -> str:
+    """``x`` to ``digits`` significant digits for a report or a printed line.
+
+    Integers print whole, booleans as yes/no, ``None`` and NaN as a dash.
+    Magnitudes of ``10**digits`` or more print as whole numbers (``12346``,
+    not ``1.23e+04``) up to 1e9.
+    """
+    if x is None:
+        return MISSING
+    if isinstance(x, bool):
+        return "yes" if x else "no"
+    if isinstance(x, numbers.Integral):
+        return str(int(x))
+    x = float(x)
+    if math.isnan(x):
+        return MISSING
+    if math.isinf(x):
+        return "inf" if x > 0 else "-inf"
+    if 10**digits <= abs(x) < 1e9:
+        return f"{x:.0f}"
+    return f"{x:.{digits}g}"
+
+
+def format_rhat(x) -> str:
+    """R-hat to 3 decimals (``1.004``); ``None`` and NaN as a dash."""
+    return MISSING if x is None or math.isnan(float(x)) else f"{float(x):.3f}"
+
+
+def format_ess(x) -> str:
+    """An effective sample size as a whole number; ``None`` and NaN as a dash."""
+    return MISSING if x is None or math.isnan(float(x)) else str(int(round(float(x))))
 
 
 class Heading(NamedTuple):

@@ -8,7 +8,9 @@ import numpy as np
 
 from lmpromp_ppl.diagnostics.metrics import ESS_MIN, KHAT_GOOD, KHAT_USABLE, RHAT_MAX, khat_verdict
 from lmpromp_ppl.reports import figures
-from lmpromp_ppl.reports.render import Alert, Figure, Heading, Paragraph, Table, to_html, to_markdown
+from lmpromp_ppl.reports.render import (
+    Alert, Figure, Heading, Paragraph, Table, format_ess, format_number, format_rhat, to_html, to_markdown,
+)
 
 __all__ = ["write_report", "IDENTIFIABILITY_TEXT", "METRICS_TEXT"]
 
@@ -52,13 +54,7 @@ METRICS_TEXT = (
 
 
 def _fmt(x, digits: int = 3) -> str:
-    if x is None:
-        return "–"
-    if isinstance(x, bool):
-        return "yes" if x else "no"
-    if isinstance(x, (int, np.integer)):
-        return str(int(x))
-    return f"{float(x):.{digits}g}"
+    return format_number(x, digits)
 
 
 def _predictive_band(q: dict) -> tuple[np.ndarray, np.ndarray]:
@@ -142,8 +138,10 @@ def write_report(out: Path, metrics: dict, results: dict, details: dict, demos) 
     per = details["reliability"]["per_quantity"]
     blocks.append(Table(
         ["quantity", "max R-hat", "min bulk ESS", "min tail ESS"],
-        [[q, _fmt(v["rhat_max"], 4), _fmt(v["ess_bulk_min"]), _fmt(v["ess_tail_min"])] for q, v in per.items()]
-        + [["**all**", _fmt(nuts["rhat_max"], 4), _fmt(nuts["ess_bulk_min"]), _fmt(nuts["ess_tail_min"])]],
+        [[q, format_rhat(v["rhat_max"]), format_ess(v["ess_bulk_min"]), format_ess(v["ess_tail_min"])]
+         for q, v in per.items()]
+        + [["**all**", format_rhat(nuts["rhat_max"]), format_ess(nuts["ess_bulk_min"]),
+            format_ess(nuts["ess_tail_min"])]],
         caption=f"NUTS: {_fmt(nuts['divergences'])} divergent transitions.",
     ))
 

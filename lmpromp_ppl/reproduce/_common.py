@@ -25,6 +25,7 @@ from typing import Callable, Sequence
 import jax
 import numpy as np
 
+from lmpromp_ppl._progress import show_progress_bars
 from lmpromp_ppl.data.core import Demonstrations, ModelData, Scaling, model_data, standardize
 from lmpromp_ppl.errors import ConvergenceWarning, LmprompError
 from lmpromp_ppl.models.hyper import Hyperparameters
@@ -230,11 +231,12 @@ def standardised_model_data(
 
 
 class progress_bar:
-    """A tqdm bar when ``enabled``, a no-op otherwise (``with progress_bar(n, desc, on) as bar: bar.update()``)."""
+    """A tqdm bar when ``enabled`` and stderr is a terminal, a no-op otherwise
+    (``with progress_bar(n, desc, on) as bar: bar.update()``)."""
 
     def __init__(self, total: int, description: str, enabled: bool):
         self._bar = None
-        if enabled:
+        if show_progress_bars(enabled):
             from tqdm.auto import tqdm
 
             self._bar = tqdm(total=total, desc=description, leave=False)
