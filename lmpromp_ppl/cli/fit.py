@@ -76,4 +76,5 @@ def fit_command(
     if not quiet:
         s = result.summary_dict()
         elbo = "" if s["elbo"] is None else f", ELBO {s['elbo']:.4g}"
-        typer.echo(f"{model}/{engine} on {dataset}: {s['seconds']:.2f} s{elbo}; wrote {out_dir}")
+        ari = f", ARI {s['ari']:.3f}" if s.get("ari") is not None else ""
+        typer.echo(f"{model}/{engine} on {dataset}: {s['seconds']:.2f} s{elbo}{ari}; wrote {out_dir}")
