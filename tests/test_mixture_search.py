@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 import lmpromp_ppl
-from lmpromp_ppl.data import load_dataset, model_data, standardize
+from lmpromp_ppl.data import Demonstrations, load_dataset, model_data, standardize
 from lmpromp_ppl.errors import LmprompError
 from lmpromp_ppl.inference import cavi
 from lmpromp_ppl.inference import mixture_search as ms
@@ -35,8 +35,9 @@ def test_acceptance_rule_needs_a_higher_bound():
 
 @pytest.fixture(scope="module")
 def clusters_state():
-    demos, _ = standardize(load_dataset("synthetic:clusters?L=24&seed=1"))
-    data = cavi.prepare_cavi_data(model_data(demos, 8))
+    """The data and hyperparameters of ``test_search_recovers_synthetic_clusters`` (shared compiled code)."""
+    demos, _ = standardize(load_dataset("synthetic:clusters"))
+    data = cavi.prepare_cavi_data(model_data(demos, 10))
     hyper = Hyperparameters(latent_dim=2, num_components=6)
     return data, hyper, cm.mixture_hyper_arrays(hyper), init_mixture_state(data, hyper, jax.random.key(3))
 
@@ -123,6 +124,7 @@ def test_search_option_and_unlabelled_data():
         lmpromp_ppl.fit("synthetic:clusters?L=12", model="mixture", hyper=hyper, search="greedy")
     with pytest.raises(LmprompError, match="mixture model only"):
         lmpromp_ppl.fit("synthetic:clusters?L=12", model="lmpromp", search="none")
-    res = lmpromp_ppl.fit("lasa:Angle?every=50", model="mixture", hyper=hyper.replace(num_components=2),
-                          search="none")
-    assert "ari" not in res.summary
+    demos = load_dataset("synthetic:clusters")
+    unlabelled = Demonstrations(demos.times, demos.positions)
+    res = lmpromp_ppl.fit(unlabelled, model="mixture", hyper=hyper.replace(num_components=6), search="none")
+    assert "ari" not in res.summary and "active_components" in res.summary
