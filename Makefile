@@ -40,5 +40,11 @@ reports: install
 	$(VENV)/bin/lmpromp compare "lasa:GShape?every=20" --latent-dim 2 --draws 500 --out reports/compare/lasa-gshape --force
 	$(VENV)/bin/lmpromp compare gunpoint:train --latent-dim 2 --draws 500 --out reports/compare/gunpoint --force
 
+# regenerate reports/real-data/: the default settings on every LASA shape, GunPoint and
+# synthetic data, CAVI everywhere and NUTS on a subsample (docs/defaults.md; about an hour on 2 cores)
+.PHONY: real-data
+real-data: install
+	$(VENV)/bin/lmpromp real-data --out reports/real-data --force
+
 clean:
 	rm -rf $(VENV) $(DEMO_OUT)

@@ -31,6 +31,9 @@ DATASETS = (
     "gunpoint:train",
 )
 SETTINGS = {
+    "default,V=2": dict(num_components=6, latent_dim=2),
+    "c0=2,d0=2,V=2": dict(c0=2.0, d0=2.0, num_components=6, latent_dim=2),
+    "c0=5,d0=0.5,V=2": dict(c0=5.0, d0=0.5, num_components=6, latent_dim=2),
     "l0=0.01,V=2": dict(lambda0=0.01, learn_beta=True, num_components=6, latent_dim=2),
     "l0=1,V=2": dict(lambda0=1.0, learn_beta=True, num_components=6, latent_dim=2),
     "l0=0.01,V=1": dict(lambda0=0.01, learn_beta=True, num_components=6, latent_dim=1),
@@ -68,7 +71,7 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=10)
     parser.add_argument("--datasets", nargs="*", default=list(DATASETS))
     parser.add_argument("--settings", nargs="*", default=list(SETTINGS), choices=list(SETTINGS))
-    parser.add_argument("--num-basis", type=int, default=10)
+    parser.add_argument("--num-basis", type=int, default=20)
     parser.add_argument("--compare-none", action="store_true", help="also fit with search='none'")
     parser.add_argument("--out", default="benchmarks/mixture_search.json")
     args = parser.parse_args()

@@ -216,7 +216,8 @@ SCALING_ROWS = (
 
 
 def _hyper(row: RowSpec) -> Hyperparameters:
-    return preset("proper", latent_dim=row.V, num_components=row.K)
+    # fixed beta: the batched CAVI and the committed figures use the thesis's fixed noise
+    return preset("proper", latent_dim=row.V, num_components=row.K, learn_beta=False)
 
 
 def _log(config: BenchConfig, message: str) -> None:

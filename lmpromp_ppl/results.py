@@ -292,7 +292,7 @@ class FitResult:
             phase = (ti - ti[0]) / (ti[-1] - ti[0])
             psi = np.asarray(design_matrix(phase, self.num_dofs, self.num_basis, self.width))
             mean = np.einsum("sd,cnd->cns", psi, w[:, :, i]).reshape(w.shape[:2] + (valid.sum(), self.num_dofs))
-            rep = mean + noise[:, :, i, valid] / np.sqrt(beta if np.ndim(beta) == 0 else beta[..., 0])
+            rep = mean + noise[:, :, i, valid] / np.sqrt(beta)  # beta: scalar or (chain, draw, 1, 1)
             out[:, :, i, valid] = self.scaling.invert(rep)
         return out
 

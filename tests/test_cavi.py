@@ -391,25 +391,31 @@ def test_ard_switches_off_surplus_dimensions(recovery):
     assert np.max(angles) < np.radians(10.0)
 
 
-def _state_with_lam(state, lam_mean):
-    """``state`` with E[lam_v] = ``lam_mean`` (shape kept, rate set)."""
+def _state_with_columns(state, lam_mean, scale):
+    """``state`` with E[lam_v] = ``lam_mean``, q(m_v) = N(scale_v * 1, 1/lam_v I) (shape kept)."""
     lam_mean = jnp.asarray(lam_mean, dtype=float)
-    return state._replace(lam_rate=state.lam_shape / lam_mean)
+    d = state.M_mean.shape[0]
+    M_mean = jnp.ones((d, 1)) * jnp.asarray(scale, dtype=float)[None, :]
+    return state._replace(lam_rate=state.lam_shape / lam_mean, M_mean=M_mean, M_var=1.0 / lam_mean)
 
 
 def test_ard_reports_none_active_when_every_column_is_off(midway):
-    """All E[lam_v] ~ 1400 (every column switched off on standardised data): no dimension is active,
-    although each passes the relative rule; columns with 1/E[lam_v] of order 1 are reported."""
+    """All E[lam_v] ~ 1400 and E[m_v] ~ 0 (every column switched off): no dimension is active,
+    although each passes the relative rule; columns whose mean stands out of q's spread are reported."""
     _, state = midway
     V = state.lam_shape.shape[0]
-    off = _state_with_lam(state, np.linspace(1380.0, 1420.0, V))
-    inverse = 1.0 / np.linspace(1380.0, 1420.0, V)
+    lam_off = np.linspace(1380.0, 1420.0, V)
+    off = _state_with_columns(state, lam_off, np.full(V, 1e-3))
+    inverse = 1.0 / lam_off
     assert np.all(inverse > 1e-3 * inverse.max())  # the relative rule alone would say "all"
     assert cavi.active_latent_dims(off) == []
-    mixed = _state_with_lam(state, [0.5] + [1400.0] * (V - 1))
+    mixed = _state_with_columns(state, [2.0] + [1400.0] * (V - 1), [1.0] + [1e-3] * (V - 1))
     assert cavi.active_latent_dims(mixed) == [0]
-    on = _state_with_lam(state, np.linspace(0.5, 20.0, V))
+    on = _state_with_columns(state, np.linspace(0.5, 20.0, V), np.linspace(2.0, 0.5, V))
     assert cavi.active_latent_dims(on) == list(range(V))
+    # the rule is unit-free: a small but well-determined column (entries 0.01, s.d. 0.001) is active
+    small = _state_with_columns(state, [1e6] * V, [1e-2] * V)
+    assert cavi.active_latent_dims(small) == list(range(V))
 
 
 def test_ard_on_a_fit_without_structure_reports_none(recovery):

@@ -30,8 +30,8 @@ def _fit(data, **kw):
 
 
 def test_presets_default_learns_noise_and_thesis_keeps_its_values():
-    default, thesis = lp.Hyperparameters(), lp.preset("thesis")
-    assert default == lp.DEFAULT == lp.preset("default")
+    default, thesis = lp.preset("default"), lp.preset("thesis")
+    assert default == lp.DEFAULT and thesis == lp.Hyperparameters() == lp.THESIS
     assert default.learn_beta and default.lambda0 == 0.01
     assert not thesis.learn_beta and thesis.lambda0 == 1.0 and thesis.beta == 100.0
     assert lp.PROPER.learn_beta and lp.PROPER.lambda0 == default.lambda0
@@ -95,7 +95,7 @@ def test_learned_noise_fits_noisy_recordings():
     pred = population_prediction(result, query=t, num_samples=1)
     # the noise level is learned: 0.5 in data units, within sampling error of 1000 residuals
     assert abs(pred.noise_sd[0] - 0.5) < 0.05
-    assert np.max(np.abs(result.point["w"])) < 5.0
+    assert np.max(np.abs(result.point["w"])) < WEIGHT_LIMIT
     assert np.sqrt(np.mean((pred.mean - truth) ** 2)) < 0.1
     # conditioning on the first third follows the sine, not the noise
     third = t.size // 3

@@ -25,7 +25,7 @@ def data():
 
 @pytest.fixture(scope="module")
 def hyper():
-    return preset("proper", latent_dim=2)
+    return preset("proper", latent_dim=2, learn_beta=False)  # the exact posteriors below take beta as known
 
 
 @pytest.fixture(scope="module")
@@ -154,7 +154,7 @@ def test_nuts_compiled_program_is_reused(conjugate_runs, data, hyper, theta):
 )
 def test_nuts_runs_each_model(data, model_name, latent_dim, num_components, expected):
     """The ProMP baseline and the mixture (z summed out) run collapsed and return their sites."""
-    hyper = preset("proper", latent_dim=latent_dim, num_components=num_components)
+    hyper = preset("proper", latent_dim=latent_dim, num_components=num_components, learn_beta=False)
     result = run_nuts(model_name, data, hyper, jax.random.key(2), num_chains=2, num_warmup=60, num_samples=40)
     assert {k: v.shape[2:] for k, v in result.samples.items()} == expected
     assert all(v.shape[:2] == (2, 40) and np.all(np.isfinite(v)) for v in result.samples.values())
@@ -191,3 +191,12 @@ def test_nuts_rejects_bad_options(data, hyper):
         run_nuts("lmpromp", data, hyper, jax.random.key(0), fixed={"b": np.zeros(3)})
     with pytest.raises(LmprompError, match="target_accept"):
         run_nuts("lmpromp", data, hyper, jax.random.key(0), target_accept=1.0)
+
+
+def test_default_nuts_learns_the_noise(data):
+    """The default preset of the sampling engines infers beta (docs/defaults.md)."""
+    hyper = preset("proper", latent_dim=1)
+    assert hyper.learn_beta
+    result = run_nuts("lmpromp", data, hyper, jax.random.key(3), num_chains=1, num_warmup=60, num_samples=40)
+    beta = np.asarray(result.samples["beta"])
+    assert beta.shape == (1, 40) and np.all(beta > 0)

@@ -51,6 +51,7 @@ def test_large_cavi_fit_saves_under_15_mb_and_loads_exactly(tmp_path):
     # and the reloaded fit predicts like the fresh one
     phase = np.linspace(0.0, 0.3, 5)
     values = demos.positions[0][:5]
-    p_fresh = predict_from_fit(result, phase, values)
-    p_loaded = predict_from_fit(loaded, phase, values)
+    # (plug-in: the posterior mean is stored exactly, while the stored draws are a thinned subset)
+    p_fresh = predict_from_fit(result, phase, values, bayesian=False)
+    p_loaded = predict_from_fit(loaded, phase, values, bayesian=False)
     np.testing.assert_array_equal(p_loaded.mean, p_fresh.mean)

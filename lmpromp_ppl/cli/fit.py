@@ -7,6 +7,7 @@ from typing import Optional
 
 import typer
 
+from lmpromp_ppl.basis import DEFAULT_NUM_BASIS, DEFAULT_WIDTH
 from lmpromp_ppl.cli import app
 from lmpromp_ppl.cli._common import SEED_HELP, SEED_MAX, caught_convergence_warnings, positive, prepare_out_dir
 
@@ -18,7 +19,7 @@ def hyper_from_options(
     latent_dim: Optional[int],
     components: Optional[int],
     beta: Optional[float],
-    learn_beta: bool,
+    learn_beta: Optional[bool],
 ):
     """Hyperparameters from a preset and the command-line overrides."""
     from lmpromp_ppl.models.hyper import preset
@@ -28,10 +29,11 @@ def hyper_from_options(
         changes["latent_dim"] = latent_dim
     if components is not None:
         changes["num_components"] = components
-    if beta is not None:
+    if beta is not None:  # a given beta is fixed unless --learn-beta says otherwise
         changes["beta"] = beta
-    if learn_beta:
-        changes["learn_beta"] = True
+        changes["learn_beta"] = False
+    if learn_beta is not None:
+        changes["learn_beta"] = learn_beta
     return preset(preset_name, **changes)
 
 
@@ -71,10 +73,11 @@ def fit_command(
     engine: str = typer.Option("cavi", help="cavi, nuts, svi_meanfield, svi_autonormal or svi_lowrank."),
     latent_dim: Optional[int] = typer.Option(None, "--latent-dim", "-V", min=1, help="Latent dimension V."),
     components: Optional[int] = typer.Option(None, "--components", "-K", min=1, help="Mixture components K."),
-    num_basis: int = typer.Option(10, "--num-basis", "-J", min=2, help="Basis functions per DoF."),
-    preset_name: Optional[str] = typer.Option(None, "--preset", help="Hyperparameter preset: thesis or proper (default: thesis for CAVI, proper otherwise)."),
-    beta: Optional[float] = typer.Option(None, callback=positive, help="Observation precision beta (standardised units)."),
-    learn_beta: bool = typer.Option(False, "--learn-beta", help="Infer beta under its Gamma prior."),
+    num_basis: int = typer.Option(DEFAULT_NUM_BASIS, "--num-basis", "-J", min=2, help="Basis functions per DoF."),
+    width: float = typer.Option(DEFAULT_WIDTH, "--width", callback=positive, help="Basis width (Gaussian variance in squared centre spacings; the thesis uses 2)."),
+    preset_name: Optional[str] = typer.Option(None, "--preset", help="Hyperparameter preset: default, thesis or proper (default: default for CAVI, proper otherwise)."),
+    beta: Optional[float] = typer.Option(None, callback=positive, help="Fix the observation precision beta (standardised units)."),
+    learn_beta: Optional[bool] = typer.Option(None, "--learn-beta/--fixed-beta", help="Infer beta under its Gamma prior (the default presets do)."),
     max_iter: Optional[int] = typer.Option(None, "--max-iter", min=1, help="CAVI: maximum iterations."),
     tol: Optional[float] = typer.Option(None, callback=positive, help="CAVI: relative ELBO tolerance."),
     restarts: Optional[int] = typer.Option(None, min=1, help="CAVI: restarts, best ELBO kept."),
@@ -93,7 +96,7 @@ def fit_command(
     """
     from lmpromp_ppl.api import fit
 
-    hyper = hyper_from_options(preset_name or ("thesis" if engine == "cavi" else "proper"), latent_dim, components, beta, learn_beta)
+    hyper = hyper_from_options(preset_name or ("default" if engine == "cavi" else "proper"), latent_dim, components, beta, learn_beta)
     options = {
         "max_iter": max_iter, "tol": tol, "num_restarts": restarts,
         "num_chains": chains, "num_warmup": warmup, "num_samples": samples,
@@ -102,7 +105,7 @@ def fit_command(
     options = {k: v for k, v in options.items() if v is not None}
     out_dir = prepare_out_dir(out, force)
     with caught_convergence_warnings() as messages:
-        result = fit(dataset, model=model, engine=engine, hyper=hyper, num_basis=num_basis, seed=seed,
+        result = fit(dataset, model=model, engine=engine, hyper=hyper, num_basis=num_basis, width=width, seed=seed,
                      progress=not quiet, **options)
     result.save(out_dir, force=True)  # draws from q keyed by the seed
     if not quiet:

@@ -5,7 +5,8 @@ Every generator is a pure function of its arguments: all randomness comes from
 in :attr:`Demonstrations.metadata`.  Weight vectors follow the layout of
 :mod:`lmpromp_ppl.basis` (DoF-major weights, time-major observations) and
 trajectories are generated through :func:`lmpromp_ppl.basis.design_matrix`
-with the default basis width.
+with the basis width :data:`GENERATOR_WIDTH` (2, the thesis's), fixed here so
+that the datasets do not change with the fitting defaults.
 
 Generators (the names used in ``synthetic:<name>?key=value&...``):
 
@@ -65,9 +66,13 @@ def _query(params: dict) -> str:
     return "&".join(f"{key}={value}" for key, value in params.items())
 
 
+#: Basis width of the generators (independent of :data:`lmpromp_ppl.basis.DEFAULT_WIDTH`).
+GENERATOR_WIDTH = 2.0
+
+
 def _trajectories(phase: np.ndarray, weights: np.ndarray, num_dofs: int, num_basis: int) -> np.ndarray:
     """Noise-free positions ``Psi w`` for each weight vector: (L, T, D)."""
-    psi = np.asarray(design_matrix(phase, num_dofs, num_basis))
+    psi = np.asarray(design_matrix(phase, num_dofs, num_basis, GENERATOR_WIDTH))
     return (weights @ psi.T).reshape(weights.shape[0], phase.shape[0], num_dofs)
 
 

@@ -372,7 +372,10 @@ def cavi_log_q(state, draws: Mapping[str, np.ndarray]) -> np.ndarray:
     from jax.scipy.stats import norm as jnorm
 
     from lmpromp_ppl.inference.cavi import EigenCovariance
+    from lmpromp_ppl.inference.cavi_mixture import MixtureState, log_q
 
+    if isinstance(state, MixtureState):  # mixture, row-wise family or learned beta
+        return np.asarray(log_q(state, {k: jnp.asarray(v) for k, v in draws.items()}))
     w, h, b, M = (jnp.asarray(draws[k]) for k in ("w", "h", "b", "M"))
     alpha, lam = jnp.asarray(draws["alpha"]), jnp.asarray(draws["lam"])
     cov = state.w_cov

@@ -97,7 +97,6 @@ __all__ = [
     "fit_cavi",
     "sample_q",
     "point_estimate",
-    "ACTIVE_FLOOR",
     "active_latent_dims",
     "FAMILIES",
     "MixtureState",
@@ -999,40 +998,32 @@ def point_estimate(state: CaviState) -> dict[str, Array]:
     }
 
 
-#: Absolute floor of the ARD rule on 1/E[lambda_v] (weight variance, standardised data units).
-ACTIVE_FLOOR = 1e-2
-
-
-def active_latent_dims(
-    state: CaviState, threshold: float = 1e-3, floor: float = ACTIVE_FLOOR
-) -> list[int] | list[list[int]]:
+def active_latent_dims(state: CaviState, threshold: float = 1e-3) -> list[int] | list[list[int]]:
     r"""Latent dimensions that ARD left switched on.
 
-    Column v is active when its scale :math:`1/E[\lambda_v]` (the variance of
-    the entries of :math:`m_v`, i.e. of the weights it moves) passes both
+    Column v is active when it passes both
 
     * the relative rule :math:`1/E[\lambda_v] > \text{threshold}\cdot\max_u 1/E[\lambda_u]`, and
-    * the absolute rule :math:`1/E[\lambda_v] > \text{floor}`.
+    * the absolute rule :math:`\lVert E[m_v] \rVert^2 > \operatorname{tr}\operatorname{Cov}_q(m_v)`:
+      the column's mean stands out of its own posterior spread, i.e. q says the
+      column is not zero.
 
     The relative rule alone cannot say "none": when the data switch every column
-    off, all :math:`E[\lambda_v]` sit near the same large value and each passes.
-    The floor is in the units of the standardised data (unit variance per DoF, the
-    default of :func:`lmpromp_ppl.fit`): a column whose weights vary by less than
-    1 % of that variance (0.1 s.d.) carries no visible movement.  Under the
-    thesis prior (:math:`c_0 = 1, d_0 = 10^{-3}`) a switched-off column settles at
-    :math:`E[\lambda_v] \ge c_0/d_0 = 1000`, an order of magnitude below the
-    floor, while columns that explain data have :math:`1/E[\lambda_v]` of order
-    0.1-100.  (With informative priors such as the ``proper`` preset,
-    :math:`E[\lambda_v]` cannot move far from the prior mean and ARD does not
-    switch columns off.)
+    off, all :math:`E[\lambda_v]` sit near the same large value (near
+    :math:`c_0/d_0` under the thesis prior) and each passes.  A switched-off
+    column has :math:`E[m_v] \approx 0` and a posterior spread of the order of
+    its prior's, so the absolute rule fails for it whatever the units of the
+    data; a column that explains data has a mean far outside its spread.
 
     A list of indices; for a mixture one list per component
     (:func:`lmpromp_ppl.inference.cavi_mixture.active_latent_dims`).
     """
     if _extension(state):
-        return _mixture.active_latent_dims(state, threshold, floor)
+        return _mixture.active_latent_dims(state, threshold)
     inverse = np.asarray(state.lam_rate / state.lam_shape)
-    return [int(v) for v in np.flatnonzero((inverse > threshold * inverse.max()) & (inverse > floor))]
+    mean_sq = np.sum(np.asarray(state.M_mean) ** 2, axis=0)
+    spread = state.M_mean.shape[0] * np.asarray(state.M_var)
+    return [int(v) for v in np.flatnonzero((inverse > threshold * inverse.max()) & (mean_sq > spread))]
 
 
 def _check_family(family: str) -> None:

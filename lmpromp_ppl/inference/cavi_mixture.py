@@ -855,6 +855,44 @@ def _sample(key: Array, state: MixtureState, gammas: Array, num_draws: int, lear
     return draws
 
 
+def log_q(state: MixtureState, draws: dict[str, Array]) -> Array:
+    r"""log q of draws (leading draw axis, the sites of :func:`sample_q`), active components only.
+
+    Every factor of the family: q(w_i), q(h_ik), q(b_k), q(M_k) (column- or
+    row-wise), q(alpha_k), q(lam_k), q(beta) when learned, and for the mixture
+    q(pi) and q(z).  Used for PSIS k-hat (:mod:`lmpromp_ppl.diagnostics.metrics`).
+    """
+    import numpyro.distributions as dist
+
+    mix = state.resp is not None
+    act = state.active
+    comp = (lambda x: x) if mix else (lambda x: x[:, None])  # noqa: E731
+    h = draws["h"] if mix else draws["h"][:, :, None]
+    on = lambda x, axes: jnp.where(act, x, 0.0).sum(axes)  # noqa: E731  (sum over active components)
+    M = comp(draws["M"])
+    if state.M_var.ndim == 3:  # rows of M_k ~ N(mu_k,j., Sigma_Mk)
+        log_M = dist.MultivariateNormal(state.M_mean, state.M_var[:, None]).log_prob(M).sum(-1)
+    else:
+        log_M = dist.Normal(state.M_mean, jnp.sqrt(state.M_var)[:, None, :]).log_prob(M).sum((-2, -1))
+    cov = state.w_cov
+    w_cov = cov.matrices if hasattr(cov, "matrices") else jnp.einsum(
+        "ij,nj,kj->nik", cov.basis, cov.variances, cov.basis)
+    terms = [
+        dist.MultivariateNormal(state.w_mean, w_cov).log_prob(draws["w"]).sum(-1),
+        on(dist.MultivariateNormal(state.h_mean, state.h_cov).log_prob(h), (-2, -1)),
+        on(dist.Normal(state.b_mean, jnp.sqrt(state.b_var)[:, None]).log_prob(comp(draws["b"])).sum(-1), -1),
+        on(dist.Gamma(state.alpha_shape, state.alpha_rate).log_prob(comp(draws["alpha"])), -1),
+        on(dist.Gamma(state.lam_shape, state.lam_rate).log_prob(comp(draws["lam"])).sum(-1), -1),
+        on(log_M, -1),
+    ]
+    if bool(state.beta_learned):
+        terms.append(dist.Gamma(state.beta_shape, state.beta_rate).log_prob(draws["beta"]))
+    if mix:
+        terms.append(dist.Dirichlet(state.pi_conc).log_prob(draws["pi"]))
+        terms.append(dist.Categorical(probs=state.resp).log_prob(draws["z"]).sum(-1))
+    return sum(terms)
+
+
 def point_estimate(state: MixtureState) -> dict[str, Array]:
     """Posterior means of q: ``b``, ``M``, ``alpha``, ``lam``, ``h``, ``w`` (+ ``beta``, + ``pi`` for the mixture).
 
@@ -882,19 +920,20 @@ def active_components(state: MixtureState) -> list[int]:
     return [int(k) for k in np.flatnonzero(np.asarray(state.active))]
 
 
-def active_latent_dims(
-    state: MixtureState, threshold: float = 1e-3, floor: float = 1e-2
-) -> list[int] | list[list[int]]:
-    r"""ARD per component: v is active when :math:`1/E[\lambda_{kv}] > \text{threshold}\cdot\max_u 1/E[\lambda_{ku}]`
-    and :math:`1/E[\lambda_{kv}] > \text{floor}` (the rule and its reasons:
-    :func:`lmpromp_ppl.inference.cavi.active_latent_dims`).
+def active_latent_dims(state: MixtureState, threshold: float = 1e-3) -> list[int] | list[list[int]]:
+    r"""ARD per component: the rule of :func:`lmpromp_ppl.inference.cavi.active_latent_dims`.
 
     Single type: a list of indices; mixture: one list per component (all K, empty for removed ones).
     """
-    inverse = np.asarray(state.lam_rate / state.lam_shape)
+    inverse = np.asarray(state.lam_rate / state.lam_shape)  # (K, V)
+    mean_sq = np.sum(np.asarray(state.M_mean) ** 2, axis=1)  # (K, V): |E[m_kv]|^2
+    var = np.asarray(state.M_var)
+    var = np.diagonal(var, axis1=-2, axis2=-1) if var.ndim == 3 else var  # (K, V)
+    spread = state.M_mean.shape[1] * var  # tr Cov(m_kv)
     active = np.asarray(state.active)
     per_component = [
-        [int(v) for v in np.flatnonzero((row > threshold * row.max()) & (row > floor))] if active[k] else []
+        [int(v) for v in np.flatnonzero((row > threshold * row.max()) & (mean_sq[k] > spread[k]))]
+        if active[k] else []
         for k, row in enumerate(inverse)
     ]
     return per_component[0] if state.resp is None else per_component

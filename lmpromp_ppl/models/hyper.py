@@ -4,7 +4,10 @@ Precision convention: every ``N(., x)`` parameter here is a precision
 (``beta``, ``lambda0``, ``gamma``); Gamma distributions are shape/rate,
 :math:`\Gamma(x | a, b) \propto x^{a-1} e^{-b x}`.
 
-Defaults (:data:`DEFAULT`, i.e. ``Hyperparameters()``) are chosen for data
+The dataclass's own defaults, ``Hyperparameters()``, are the thesis's values
+(:data:`THESIS`, Sec. 4.1; the algebra is proven for any values).  The
+settings that :func:`lmpromp_ppl.fit` uses when given none, :data:`DEFAULT`
+(``preset("default")``), are chosen for data
 standardised per DoF (the default in lmpromp-ppl) by measurement on real
 recordings (LASA, GunPoint; docs/defaults.md and ``reports/real-data/``):
 
@@ -27,7 +30,8 @@ recordings (LASA, GunPoint; docs/defaults.md and ``reports/real-data/``):
   switched-off column keeps :math:`1/\bar\lambda_v \ge d_0/(c_0 + d/2)`.
 
 :data:`THESIS` keeps the thesis's values (``lambda0 = 1``, fixed
-``beta = 100``) for the reproduction of its experiments.
+``beta = 100``) for the reproduction of its experiments; fits with them on
+real data are flagged by :mod:`lmpromp_ppl.diagnostics.degeneracy`.
 
 :data:`PROPER` (the default for NUTS and SVI) is :data:`DEFAULT` with proper
 Gamma priors for sampling-based engines: Gamma(1e-5, 1e-5)
@@ -75,7 +79,7 @@ class Hyperparameters:
     """
 
     beta: float = 100.0
-    lambda0: float = 0.01
+    lambda0: float = 1.0
     gamma: float = 1.0
     a0: float = 1e-5
     b0: float = 1e-5
@@ -84,7 +88,7 @@ class Hyperparameters:
     latent_dim: int = 3
     num_components: int = 1
     kappa0: float = 1.0
-    learn_beta: bool = True
+    learn_beta: bool = False
     beta_a0: float = 1.0
     beta_b0: float = 0.01
     promp_scale: float = 1.0
@@ -133,10 +137,10 @@ class Hyperparameters:
         return cls(**d)
 
 
-DEFAULT = Hyperparameters()
-THESIS = Hyperparameters(lambda0=1.0, learn_beta=False)
-PROPER = Hyperparameters(a0=1e-2, b0=1e-2, c0=2.0, d0=2.0)
-SIMULATION = Hyperparameters(lambda0=1.0, learn_beta=False, a0=3.0, b0=0.2, c0=3.0, d0=2.0)
+THESIS = Hyperparameters()
+DEFAULT = THESIS.replace(lambda0=0.01, learn_beta=True)
+PROPER = DEFAULT.replace(a0=1e-2, b0=1e-2, c0=2.0, d0=2.0)
+SIMULATION = THESIS.replace(a0=3.0, b0=0.2, c0=3.0, d0=2.0)
 
 
 def preset(name: str, **changes) -> Hyperparameters:

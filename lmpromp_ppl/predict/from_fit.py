@@ -1,4 +1,4 @@
-"""Prediction from a saved or fresh fit (:class:`~lmpromp_ppl.results.FitResult`).
+r"""Prediction from a saved or fresh fit (:class:`~lmpromp_ppl.results.FitResult`).
 
 :func:`predict_from_fit` ties observations in data units to the fit's basis
 and scaling, conditions the plug-in or Bayesian predictive, and returns the

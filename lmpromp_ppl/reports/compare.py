@@ -35,6 +35,7 @@ from typing import Sequence
 
 import numpy as np
 
+from lmpromp_ppl.basis import DEFAULT_NUM_BASIS
 from lmpromp_ppl.errors import ConvergenceWarning, LmprompError
 
 __all__ = ["QUANTITIES", "EXTRA_QUANTITIES", "expand_engines", "compute_metrics", "compare"]
@@ -200,7 +201,7 @@ def compare(
     out_dir: str | Path,
     latent_dim: int | None = None,
     num_components: int | None = None,
-    num_basis: int = 10,
+    num_basis: int = DEFAULT_NUM_BASIS,
     preset_name: str = "proper",
     num_chains: int | None = None,
     num_warmup: int | None = None,
@@ -283,6 +284,10 @@ def compare(
     engine_metrics, details = compute_metrics(results, mdata, num_draws=num_draws, seed=seed)
     for name, messages in engine_warnings.items():
         engine_metrics[name]["warnings"] = messages
+        # plain-word degeneracy warnings (lmpromp_ppl.diagnostics.degeneracy), convergence said above
+        engine_metrics[name]["degeneracy"] = [
+            w for w in results[name].summary.get("warnings", []) if not w.startswith("not converged")
+        ]
     metrics = to_json_value({
         "dataset": spec,
         "model": model,

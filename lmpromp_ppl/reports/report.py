@@ -159,6 +159,10 @@ def write_report(out: Path, metrics: dict, results: dict, details: dict, demos) 
     warned = [f"{e}: {w}" for e, m in engines.items() for w in m.get("warnings", [])]
     if warned:
         blocks.append(Alert("engine warnings (their results may not have converged): " + "; ".join(warned) + "."))
+    degenerate = [f"{e}: {w}" for e, m in engines.items() for w in m.get("degeneracy", [])]
+    if degenerate:
+        blocks.append(Alert("degenerate fits (the model describes the demonstrations badly, whatever the engine): "
+                            + "; ".join(degenerate) + "."))
     notes = [f"{e}: {m['psis_khat_note']}" for e, m in engines.items() if m.get("psis_khat_note")]
     if notes:
         blocks.append(Paragraph("k-hat notes: " + "; ".join(notes) + "."))
