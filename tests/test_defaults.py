@@ -118,8 +118,9 @@ def test_default_predict_is_exact_and_passes_through_precise_observations(gshape
 
 
 def test_real_data_row_meets_every_criterion_on_lasa():
-    row = dataset_row(GSHAPE, "cavi", max_folds=3, options={"hyper": lp.preset("default", latent_dim=2)})
-    assert row["folds"] == [0, 3, 6]
+    # every fold: single folds' coverage ranges from 0.5 to 0.97 on seven demonstrations
+    row = dataset_row(GSHAPE, "cavi", max_folds=7, options={"hyper": lp.preset("default", latent_dim=2)})
+    assert row["folds"] == list(range(7))
     assert all(row["passes"].values()), row
     assert 0.0 < row["halfwidth"] < 1.5 and row["max_abs_w"] < WEIGHT_LIMIT
 

@@ -464,15 +464,19 @@ def engine_khat(result, data, key, num_draws: int = 1000) -> dict:
     engine = result.engine
     key_q = key
     if engine == "cavi":
-        from lmpromp_ppl.inference.cavi import CaviState, sample_q
-
-        if not isinstance(result.state, CaviState):
-            out["note"] = "log q of this CAVI family is not available (only the single-type family is)"
-            return out
+        from lmpromp_ppl.inference.cavi import sample_q
         from lmpromp_ppl.models.lmpromp import lmpromp_model
+        from lmpromp_ppl.models.mixture import mixture_model
 
+        if result.model == "mixture" and not bool(np.all(np.asarray(result.state.active))):
+            out["note"] = "q has no factor for the removed mixture components, so log p - log q is not defined"
+            return out
         draws = {k: np.asarray(v) for k, v in sample_q(key_q, result.state, num_draws).items()}
-        log_ratio = model_log_joint(lmpromp_model, (data, result.hyper), draws) - cavi_log_q(result.state, draws)
+        if result.model == "mixture":  # the explicit (z sampled) mixture, as q has a factor q(z)
+            target = (mixture_model, (data, result.hyper, False))
+        else:
+            target = (lmpromp_model, (data, result.hyper))
+        log_ratio = model_log_joint(*target, draws) - cavi_log_q(result.state, draws)
     elif engine.startswith("svi_"):
         if not hasattr(result.state, "context"):
             out["note"] = "the SVI result does not carry its guide parameters"
