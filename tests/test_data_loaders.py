@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from lmpromp_ppl.basis import design_matrix
+from lmpromp_ppl.data.synthetic import GENERATOR_WIDTH
 from lmpromp_ppl.data import (
     count_collisions,
     four_clusters,
@@ -247,7 +248,7 @@ def test_latent_generator_y_matches_psi_w_within_noise():
     L, d, V = 12, 12, 2
     assert m["b"].shape == (d,) and m["M"].shape == (d, V) and m["h"].shape == (L, V) and m["w"].shape == (L, d)
     assert float(m["alpha"]) == 100.0 and float(m["beta"]) == 400.0 and int(m["num_basis"]) == 6
-    psi = np.asarray(design_matrix(np.linspace(0, 1, 40), 2, 6))
+    psi = np.asarray(design_matrix(np.linspace(0, 1, 40), 2, 6, GENERATOR_WIDTH))
     residual = np.stack([y.reshape(-1) - psi @ w for y, w in zip(demos.positions, m["w"])])
     # beta * sum of squared residuals ~ chi^2(n): within 4 standard deviations
     n = residual.size
