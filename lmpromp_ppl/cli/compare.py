@@ -7,7 +7,7 @@ from typing import Optional
 
 import typer
 
-from lmpromp_ppl.basis import DEFAULT_NUM_BASIS, DEFAULT_WIDTH
+from lmpromp_ppl.basis import DEFAULT_NUM_BASIS
 from lmpromp_ppl.cli import app
 from lmpromp_ppl.cli._common import SEED_HELP, SEED_MAX
 

@@ -912,26 +912,37 @@ def _best_of_restarts(starts, cavi_data, hyper_arr, tol, max_iter, progress, lab
         )
         seconds += run_seconds
         compile_seconds += run_compile
-        final = float(trace[-1])
-        if not math.isfinite(final):
-            raise LmprompError(
-                f"CAVI diverged (ELBO {final}) in restart {r + 1}; check beta and the data scaling"
-            )
+        final = check_restart_bound(float(trace[-1]), r)
         restart_elbos.append(final)
         if best is None or final > best[0]:
             best = (final, result, trace)
     final, result, trace = best
+    return best_fit(result, final, trace, int(result.iterations), seconds, compile_seconds, restart_elbos,
+                    tol=tol, max_iter=max_iter)
+
+
+def check_restart_bound(final: float, restart: int) -> float:
+    """The final bound of a restart; a non-finite one is a typed error."""
+    if not math.isfinite(final):
+        raise LmprompError(
+            f"CAVI diverged (ELBO {final}) in restart {restart + 1}; check beta and the data scaling"
+        )
+    return final
+
+
+def best_fit(result, final, trace, iterations, seconds, compile_seconds, restart_elbos, *, tol, max_iter) -> CaviFit:
+    """The :class:`CaviFit` of the best restart; warns when it stopped at ``max_iter``."""
     if not bool(result.converged):
         warnings.warn(
             f"CAVI stopped at max_iter={max_iter} before the relative ELBO change fell below tol={tol}",
             ConvergenceWarning,
-            stacklevel=4,
+            stacklevel=5,
         )
     return CaviFit(
         state=result.state,
         elbo=final,
         elbo_trace=trace,
-        iterations=int(result.iterations),
+        iterations=iterations,
         converged=bool(result.converged),
         seconds=seconds,
         compile_seconds=compile_seconds,

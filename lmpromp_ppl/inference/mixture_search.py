@@ -38,7 +38,6 @@ from __future__ import annotations
 
 import math
 import time
-import warnings
 from functools import partial
 from typing import NamedTuple
 
@@ -48,7 +47,7 @@ import numpy as np
 from jax import Array
 from sklearn.cluster import KMeans
 
-from lmpromp_ppl.errors import ConvergenceWarning, LmprompError
+from lmpromp_ppl.errors import LmprompError
 from lmpromp_ppl.inference import cavi as _cavi
 from lmpromp_ppl.inference.cavi import CaviData, CaviFit
 from lmpromp_ppl.inference import cavi_mixture as cm
@@ -433,27 +432,11 @@ def fit_with_search(
         )
         seconds += searched + run_seconds
         compile_seconds += run_compile
-        final = float(trace[-1]) if trace.size else found.elbo
-        if not math.isfinite(final):
-            raise LmprompError(f"CAVI diverged (ELBO {final}) in restart {r + 1}; check beta and the data scaling")
+        final = _cavi.check_restart_bound(float(trace[-1]) if trace.size else found.elbo, r)
         restart_elbos.append(final)
         full_trace = np.concatenate([found.trace, trace])
         if best is None or final > best[0]:
             best = (final, result, full_trace)
     final, result, trace = best
-    if not bool(result.converged):
-        warnings.warn(
-            f"CAVI stopped at max_iter={max_iter} before the relative ELBO change fell below tol={tol}",
-            ConvergenceWarning,
-            stacklevel=4,
-        )
-    return CaviFit(
-        state=result.state,
-        elbo=final,
-        elbo_trace=trace,
-        iterations=int(trace.size),
-        converged=bool(result.converged),
-        seconds=seconds,
-        compile_seconds=compile_seconds,
-        restart_elbos=restart_elbos,
-    )
+    return _cavi.best_fit(result, final, trace, int(trace.size), seconds, compile_seconds, restart_elbos,
+                          tol=tol, max_iter=max_iter)

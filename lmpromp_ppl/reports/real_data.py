@@ -38,17 +38,15 @@ import numpy as np
 
 __all__ = [
     "CRITERIA",
-    "LASA_DATASETS",
-    "DEFAULT_DATASETS",
     "POOLED_LASA",
+    "default_datasets",
     "dataset_row",
     "mixture_rows",
     "passes",
     "markdown_table",
+    "mixture_table",
+    "write_report",
 ]
-
-#: LASA at every 10th sample (100 points per demonstration).
-LASA_DATASETS: tuple[str, ...] = ()  # filled lazily by default_datasets()
 
 #: Pooled LASA shape sets for the mixture check.
 POOLED_LASA = (
@@ -66,9 +64,6 @@ def default_datasets() -> list[str]:
         [f"lasa:{shape}?every=10" for shape in lasa_shapes()]
         + ["gunpoint:train", "synthetic:latent?L=20&D=2&J=10&V=3&seed=0", "synthetic:reaching"]
     )
-
-
-DEFAULT_DATASETS = default_datasets
 
 
 def _criteria(row: dict) -> dict[str, bool]:
