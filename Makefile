@@ -33,12 +33,14 @@ test-slow: install-test
 notebooks: install-test
 	$(PY) scripts/render_notebooks.py
 
-# regenerate the committed example reports under reports/compare/ (a few minutes each)
+# regenerate the committed example reports under reports/compare/ (a few minutes each).
+# GShape with the default basis (J = 20); the synthetic set (generated with J = 10) and
+# GunPoint (L = 50) with J = 10, which keeps their NUTS references within minutes.
 .PHONY: reports
 reports: install
-	$(VENV)/bin/lmpromp compare "synthetic:latent?L=20&D=2&J=10&V=3&seed=0" --latent-dim 3 --draws 500 --out reports/compare/synthetic-latent --force
 	$(VENV)/bin/lmpromp compare "lasa:GShape?every=20" --latent-dim 2 --draws 500 --out reports/compare/lasa-gshape --force
-	$(VENV)/bin/lmpromp compare gunpoint:train --latent-dim 2 --draws 500 --out reports/compare/gunpoint --force
+	$(VENV)/bin/lmpromp compare "synthetic:latent?L=20&D=2&J=10&V=3&seed=0" --num-basis 10 --latent-dim 3 --draws 500 --out reports/compare/synthetic-latent --force
+	$(VENV)/bin/lmpromp compare gunpoint:train --num-basis 10 --latent-dim 2 --draws 500 --out reports/compare/gunpoint --force
 
 # regenerate reports/real-data/: the default settings on every LASA shape, GunPoint and
 # synthetic data, CAVI everywhere and NUTS on a subsample (docs/defaults.md; about an hour on 2 cores)

@@ -183,3 +183,22 @@ def test_mixture_copy_and_responsibility_weighted_offset():
     resp[:2, 0] = resp[2:, 2] = 1.0
     out = degeneracy_warnings("mixture", point=point, num_dofs=1, num_basis=J, resp=resp, active=[0, 2])
     assert len(out) == 1 and "of component 0" in out[0]
+
+
+def test_real_data_command_writes_the_table(tmp_path, capsys):
+    from lmpromp_ppl.cli import main
+
+    out = tmp_path / "rd"
+    assert main(["real-data", "--datasets", "lasa:Angle?every=20", "--engines", "cavi", "--max-folds", "2",
+                 "--mixture-seeds", "0", "--out", str(out), "--quiet"]) == 0
+    text = (out / "real-data.md").read_text()
+    assert "`lasa:Angle?every=20` | cavi | 7 |" in text and "## Criteria met" in text
+    import json
+
+    document = json.loads((out / "real-data.json").read_text())
+    (row,) = document["rows"]
+    assert row["folds"] == [0, 6] and set(row["passes"]) == set(document["criteria"])
+    assert (out / "predictive.png").stat().st_size > 0
+    # a bad engine is one line and status 2, and leaves no output behind
+    assert main(["real-data", "--engines", "cavi,gibbs", "--out", str(tmp_path / "bad")]) == 2
+    assert "unknown engine" in capsys.readouterr().err and not (tmp_path / "bad").exists()
