@@ -66,7 +66,8 @@ def default_datasets() -> list[str]:
     )
 
 
-def _criteria(row: dict) -> dict[str, bool]:
+def passes(row: dict) -> dict[str, bool]:
+    """Which criteria of :data:`CRITERIA` a dataset row meets."""
     noise = row.get("noise_sd") or 0.0
     return {
         "pop_rmse": row["pop_rmse"] < 0.25,
@@ -83,11 +84,6 @@ CRITERIA = {
     "cond_rmse_observed": "< max(0.5, 1.2 noise_sd)",
     "cond_rmse_rest": "< uncond_rmse_rest",
 }
-
-
-def passes(row: dict) -> dict[str, bool]:
-    """Which criteria of :data:`CRITERIA` a dataset row meets."""
-    return _criteria(row)
 
 
 def _rms_over_dofs(err: np.ndarray, scale: np.ndarray) -> float:
