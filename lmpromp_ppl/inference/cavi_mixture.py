@@ -884,9 +884,12 @@ def log_q(state: MixtureState, draws: dict[str, Array]) -> Array:
         on(dist.Gamma(state.alpha_shape, state.alpha_rate).log_prob(comp(draws["alpha"])), -1),
         on(dist.Gamma(state.lam_shape, state.lam_rate).log_prob(comp(draws["lam"])).sum(-1), -1),
         on(log_M, -1),
+        jnp.where(  # traceable: beta_learned is an array leaf of the state
+            state.beta_learned,
+            dist.Gamma(state.beta_shape, state.beta_rate).log_prob(draws.get("beta", 1.0)),
+            0.0,
+        ),
     ]
-    if bool(state.beta_learned):
-        terms.append(dist.Gamma(state.beta_shape, state.beta_rate).log_prob(draws["beta"]))
     if mix:
         terms.append(dist.Dirichlet(state.pi_conc).log_prob(draws["pi"]))
         terms.append(dist.Categorical(probs=state.resp).log_prob(draws["z"]).sum(-1))
