@@ -50,8 +50,9 @@ def test_loaded_fit_predicts_through_the_observations(fit_dir, tmp_path):
     assert main(["predict", str(fit_dir), "--observe", str(tmp_path / "obs.npz"), "--out", str(out),
                  "--exact", "--quiet"]) == 0
     with np.load(out / "prediction.npz") as f:
-        phase, mean, sd, samples = f["phase"], f["mean"], f["sd"], f["samples"]
-    assert mean.shape == sd.shape == (phase.size, 2) and samples.shape[1:] == (phase.size, 2)
+        phase, mean, sd, samples, sd_obs = f["phase"], f["mean"], f["sd"], f["samples"], f["sd_obs"]
+    assert mean.shape == sd.shape == sd_obs.shape == (phase.size, 2) and samples.shape[1:] == (phase.size, 2)
+    assert np.all(sd_obs > sd)  # the band of a new observation adds the fitted noise
     assert (out / "prediction.png").stat().st_size > 0
     # The exact conditional follows the observed part better than the prior mean does, to
     # within the generator's observation noise (beta = 400: s.d. 0.05).
