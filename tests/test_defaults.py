@@ -202,3 +202,18 @@ def test_real_data_command_writes_the_table(tmp_path, capsys):
     # a bad engine is one line and status 2, and leaves no output behind
     assert main(["real-data", "--engines", "cavi,gibbs", "--out", str(tmp_path / "bad")]) == 2
     assert "unknown engine" in capsys.readouterr().err and not (tmp_path / "bad").exists()
+
+
+def test_fit_command_says_when_the_fit_is_degenerate(tmp_path, capsys):
+    from lmpromp_ppl.cli import main
+
+    args = ["fit", GSHAPE, "--preset", "thesis", "--num-basis", "10", "--width", "2", "--latent-dim", "2"]
+    assert main(args + ["--out", str(tmp_path / "a")]) == 0
+    out = capsys.readouterr().out
+    assert "warning: mean movement carried by M h" in out
+    import json
+
+    summary = json.loads((tmp_path / "a" / "summary.json").read_text())
+    assert any("carried by M h" in w for w in summary["warnings"])
+    assert main(args + ["--out", str(tmp_path / "b"), "--quiet"]) == 0
+    assert capsys.readouterr().out == ""
