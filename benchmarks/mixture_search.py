@@ -22,6 +22,8 @@ import warnings
 import jax
 import numpy as np
 
+from lmpromp_ppl.basis import DEFAULT_NUM_BASIS
+
 DATASETS = (
     "lasa:GShape+Angle+Sshape?every=20",
     "lasa:CShape+Worm+Zshape+Leaf_1?every=20",
@@ -30,13 +32,14 @@ DATASETS = (
     "synthetic:clusters",
     "gunpoint:train",
 )
+#: name: (preset, changes); every setting learns beta except ``thesis``.
 SETTINGS = {
-    "default,V=2": dict(num_components=6, latent_dim=2),
-    "c0=2,d0=2,V=2": dict(c0=2.0, d0=2.0, num_components=6, latent_dim=2),
-    "c0=5,d0=0.5,V=2": dict(c0=5.0, d0=0.5, num_components=6, latent_dim=2),
-    "l0=0.01,V=2": dict(lambda0=0.01, learn_beta=True, num_components=6, latent_dim=2),
-    "l0=1,V=2": dict(lambda0=1.0, learn_beta=True, num_components=6, latent_dim=2),
-    "l0=0.01,V=1": dict(lambda0=0.01, learn_beta=True, num_components=6, latent_dim=1),
+    "default,V=2": ("default", dict(num_components=6, latent_dim=2)),
+    "default,V=3": ("default", dict(num_components=6, latent_dim=3)),
+    "l0=0.01,V=2": ("default", dict(lambda0=0.01, num_components=6, latent_dim=2)),
+    "l0=0.01,V=1": ("default", dict(lambda0=0.01, num_components=6, latent_dim=1)),
+    "c0=d0=2,V=2": ("default", dict(c0=2.0, d0=2.0, num_components=6, latent_dim=2)),
+    "thesis,V=2": ("thesis", dict(num_components=6, latent_dim=2)),
 }
 
 
@@ -71,13 +74,13 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=10)
     parser.add_argument("--datasets", nargs="*", default=list(DATASETS))
     parser.add_argument("--settings", nargs="*", default=list(SETTINGS), choices=list(SETTINGS))
-    parser.add_argument("--num-basis", type=int, default=20)
+    parser.add_argument("--num-basis", type=int, default=DEFAULT_NUM_BASIS)
     parser.add_argument("--compare-none", action="store_true", help="also fit with search='none'")
     parser.add_argument("--out", default="benchmarks/mixture_search.json")
     args = parser.parse_args()
 
     import lmpromp_ppl
-    from lmpromp_ppl.models.hyper import Hyperparameters
+    from lmpromp_ppl.models.hyper import preset
 
     warnings.simplefilter("ignore")
     searches = ["split_merge"] + (["none"] if args.compare_none else [])
@@ -88,7 +91,8 @@ def main() -> None:
         labels = lmpromp_ppl.data.load_dataset(spec).labels
         types = len(set(labels))
         for name in args.settings:
-            hyper = Hyperparameters(**SETTINGS[name])
+            base, changes = SETTINGS[name]
+            hyper = preset(base, **changes)
             oracle = oracle_elbo(spec, hyper, args.num_basis)
             for search in searches:
                 fits = []
@@ -103,7 +107,7 @@ def main() -> None:
                 aris = np.array([f["ari"] for f in fits])
                 counts = [len(f["active_components"]) for f in fits]
                 ok = sum(f["ari"] >= 0.9 and len(f["active_components"]) == types for f in fits)
-                row = {"dataset": spec, "setting": name, "hyperparameters": SETTINGS[name], "search": search,
+                row = {"dataset": spec, "setting": name, "hyperparameters": hyper.to_dict(), "search": search,
                        "num_types": types, "num_ok": ok, "ari_mean": float(aris.mean()), "ari_min": float(aris.min()),
                        "oracle_elbo": oracle, "best_elbo": max(f["elbo"] for f in fits), "fits": fits}
                 rows.append(row)

@@ -96,14 +96,12 @@ print("demonstrations that collide:", count_collisions(reach.positions, meta), "
 
 # %% [markdown]
 # Fit a single LMProMP and a mixture with $K = 3$ components, both by CAVI
-# (`lp.fit(..., model="mixture", engine="cavi", hyper=Hyperparameters(num_components=K))`).
-# As in notebook 01 the offsets get a vague prior ($\lambda_0 = 0.01$): with
-# the default $\lambda_0 = 1$ a component that claims few demonstrations has
-# its offset $b_k$ pulled to 0, i.e. to the average position of *all*
-# demonstrations.
+# (`lp.fit(..., model="mixture", engine="cavi", hyper=lp.preset("default", num_components=K))`).
+# Both use the library's default settings (`lp.preset("default")`: the
+# thesis's priors with the observation noise learned).
 
 # %%
-SINGLE = lp.Hyperparameters(latent_dim=2, lambda0=1e-2)
+SINGLE = lp.preset("default", latent_dim=2)
 MIXTURE = SINGLE.replace(num_components=K)
 single = lp.fit(reach, model="lmpromp", engine="cavi", hyper=SINGLE, num_basis=J_REACH, **CAVI)
 mixture = lp.fit(reach, model="mixture", engine="cavi", hyper=MIXTURE, num_basis=J_REACH, **CAVI)

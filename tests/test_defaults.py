@@ -32,7 +32,8 @@ def _fit(data, **kw):
 def test_presets_default_learns_noise_and_thesis_keeps_its_values():
     default, thesis = lp.preset("default"), lp.preset("thesis")
     assert default == lp.DEFAULT and thesis == lp.Hyperparameters() == lp.THESIS
-    assert default.learn_beta and default.lambda0 == 0.01
+    assert default.learn_beta and default.lambda0 == 1.0
+    assert default == thesis.replace(learn_beta=True)
     assert not thesis.learn_beta and thesis.lambda0 == 1.0 and thesis.beta == 100.0
     assert lp.PROPER.learn_beta and lp.PROPER.lambda0 == default.lambda0
 

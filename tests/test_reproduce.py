@@ -118,3 +118,21 @@ def test_nearest_mean_accuracy_separates_and_fails_on_shuffled_labels():
     labels = np.array(["a"] * 10 + ["b"] * 10)
     assert nearest_mean_accuracy(x, labels) == 1.0
     assert nearest_mean_accuracy(x, np.array(["a", "b"] * 10)) < 0.8
+
+
+def test_preset_default_runs_with_the_library_defaults(quick_run, tmp_path, capsys):
+    """``--preset default``: learned beta, twice the thesis's J, width 1; recorded in the JSON and claims.md."""
+    _, documents = quick_run
+    target = tmp_path / "semantics-default"
+    assert main(["reproduce", "semantics", "--out", str(target), "--quick", "--quiet", "--preset", "default"]) == 0
+    document = json.loads((target / "semantics.json").read_text())
+    thesis = documents["semantics"]
+    assert thesis["preset"] == "thesis" and thesis["width"] == 2.0
+    assert document["preset"] == "default" and document["width"] == 1.0
+    for label, size in document["sizes"].items():
+        assert size["num_basis"] == 2 * thesis["sizes"][label]["num_basis"]
+    # a different basis and noise model: the measured effects are not the thesis run's
+    assert document["numbers"]["GunPoint"] != thesis["numbers"]["GunPoint"]
+    assert "--preset default" in (target / "claims.md").read_text()
+    assert main(["reproduce", "c0", "--out", str(tmp_path / "y"), "--quick", "--quiet", "--preset", "nope"]) == 2
+    assert "unknown preset" in capsys.readouterr().err

@@ -11,11 +11,17 @@ settings that :func:`lmpromp_ppl.fit` uses when given none, :data:`DEFAULT`
 standardised per DoF (the default in lmpromp-ppl) by measurement on real
 recordings (LASA, GunPoint; docs/defaults.md and ``reports/real-data/``):
 
-* ``lambda0 = 0.01``: a weak prior on the offset ``b`` (s.d. 10 on data of unit
-  spread).  With the thesis's ``lambda0 = 1`` the mean movement costs as much
-  in ``b`` as in ``M h``, and on LASA one column of ``M`` absorbs it (every
-  demonstration's ``h`` near -1.2, the population mean 0.95 data s.d. from the
-  demonstrations' mean);
+* ``lambda0 = 1`` (the thesis's value): the offset ``b`` has the scale of
+  standardised data.  With the well-conditioned default basis
+  (:data:`lmpromp_ppl.basis.DEFAULT_NUM_BASIS`, width 1) weights are of order
+  one, so this prior costs the mean movement little in ``b`` (the population
+  mean lies 0.006-0.045 data s.d. from the demonstrations' mean on LASA) and it
+  keeps a mixture component's Occam factor modest, so that the mixture finds
+  movement types (with ``lambda0 = 0.01`` a new component's ``b`` costs about
+  :math:`\tfrac d2 \log 100` nats more and the bound merges types on one
+  component's latent plane).  Under the thesis's width-2 basis, whose weights
+  reach 40 on LASA, ``lambda0 = 1`` lets a column of ``M`` absorb the mean
+  movement instead (docs/defaults.md);
 * ``learn_beta = True`` with ``beta ~ Gamma(1, 0.01)`` (mean 100, an
   Exponential prior on the noise precision): the noise level is learned from
   the data, for every engine.  A fixed ``beta = 100`` (noise s.d. 0.1) is too
@@ -29,9 +35,9 @@ recordings (LASA, GunPoint; docs/defaults.md and ``reports/real-data/``):
   the posterior mean obeys :math:`\bar\lambda_v \le (c_0 + d/2)/d_0`, so a
   switched-off column keeps :math:`1/\bar\lambda_v \ge d_0/(c_0 + d/2)`.
 
-:data:`THESIS` keeps the thesis's values (``lambda0 = 1``, fixed
-``beta = 100``) for the reproduction of its experiments; fits with them on
-real data are flagged by :mod:`lmpromp_ppl.diagnostics.degeneracy`.
+:data:`THESIS` keeps the thesis's values (fixed ``beta = 100``) for the
+reproduction of its experiments; fits with them and the thesis's basis on real
+data are flagged by :mod:`lmpromp_ppl.diagnostics.degeneracy`.
 
 :data:`PROPER` (the default for NUTS and SVI) is :data:`DEFAULT` with proper
 Gamma priors for sampling-based engines: Gamma(1e-5, 1e-5)
@@ -138,7 +144,7 @@ class Hyperparameters:
 
 
 THESIS = Hyperparameters()
-DEFAULT = THESIS.replace(lambda0=0.01, learn_beta=True)
+DEFAULT = THESIS.replace(learn_beta=True)
 PROPER = DEFAULT.replace(a0=1e-2, b0=1e-2, c0=2.0, d0=2.0)
 SIMULATION = THESIS.replace(a0=3.0, b0=0.2, c0=3.0, d0=2.0)
 

@@ -28,12 +28,16 @@ import numpy as np
 from lmpromp_ppl._progress import show_progress_bars
 from lmpromp_ppl.data.core import Demonstrations, ModelData, Scaling, model_data, standardize
 from lmpromp_ppl.errors import ConvergenceWarning, LmprompError
-from lmpromp_ppl.models.hyper import Hyperparameters
+from lmpromp_ppl.basis import DEFAULT_NUM_BASIS, DEFAULT_WIDTH
+from lmpromp_ppl.models.hyper import DEFAULT, THESIS, Hyperparameters
 
 __all__ = [
     "MAX_ITER",
     "TOL",
     "VERDICTS",
+    "SETTINGS",
+    "THESIS_WIDTH",
+    "Settings",
     "Context",
     "Claim",
     "ExperimentOutput",
@@ -58,6 +62,42 @@ TOL = 1e-6
 VERDICTS = ("holds", "holds partly", "does not hold")
 
 
+#: The thesis's basis width (Gaussian variance / squared centre spacing); its J is 10.
+THESIS_WIDTH = 2.0
+
+
+@dataclass(frozen=True)
+class Settings:
+    """The hyperparameters and basis that a reproduction runs with.
+
+    Attributes
+    ----------
+    name : ``"thesis"`` (the thesis's values, J = 10 and width 2, as its
+        experiments used) or ``"default"`` (the library's defaults,
+        docs/defaults.md: learned ``beta``, twice the basis functions, width 1)
+    hyper : the hyperparameters every experiment starts from (it changes
+        only the ones it studies, e.g. ``beta`` or ``c0``)
+    width : basis width
+    basis_scale : factor on each experiment's thesis-sized J
+    """
+
+    name: str
+    hyper: Hyperparameters
+    width: float
+    basis_scale: int
+
+    def num_basis(self, thesis_num_basis: int) -> int:
+        """J for an experiment that uses ``thesis_num_basis`` under the thesis's settings."""
+        return self.basis_scale * int(thesis_num_basis)
+
+
+#: ``lmpromp reproduce --preset``: the thesis's settings, or the library's defaults.
+SETTINGS = {
+    "thesis": Settings("thesis", THESIS, THESIS_WIDTH, 1),
+    "default": Settings("default", DEFAULT, DEFAULT_WIDTH, DEFAULT_NUM_BASIS // 10),
+}
+
+
 @dataclass(frozen=True)
 class Context:
     """How an experiment runs.
@@ -68,12 +108,14 @@ class Context:
     quick : tiny sizes for the test suite (a few seconds per experiment)
     seed : seeds every random choice
     progress : show progress bars
+    settings : hyperparameters and basis (:data:`SETTINGS`; the thesis's by default)
     """
 
     out: Path
     quick: bool = False
     seed: int = 0
     progress: bool = True
+    settings: Settings = SETTINGS["thesis"]
 
 
 @dataclass(frozen=True)
@@ -215,15 +257,15 @@ def time_mask(num_times: int, num_dofs: int, keep: np.ndarray) -> np.ndarray:
 
 
 def standardised_model_data(
-    demos: Demonstrations, num_basis: int, keep: np.ndarray | None = None
+    demos: Demonstrations, num_basis: int, keep: np.ndarray | None = None, *, width: float
 ) -> tuple[ModelData, Scaling, Demonstrations]:
-    """Standardise ``demos`` on themselves and build :class:`ModelData`.
+    """Standardise ``demos`` on themselves and build :class:`ModelData` with basis width ``width``.
 
     ``keep`` (T,) bool marks the time samples that are observed (same for every
     demonstration; the others are masked, keeping the array shapes).
     """
     scaled, scaling = standardize(demos)
-    data = model_data(scaled, num_basis)
+    data = model_data(scaled, num_basis, width)
     if keep is not None:
         row = time_mask(demos.lengths[0], demos.num_dofs, keep)
         data = data._replace(mask=data.mask * row[None, :])

@@ -13,13 +13,14 @@ is run beside the fixed values.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Sequence
 
 import numpy as np
 from scipy.stats import spearmanr
 
-from lmpromp_ppl.models.hyper import THESIS, Hyperparameters
-from lmpromp_ppl.reproduce._common import Claim, Context, ExperimentOutput, mean_se, progress_bar
+from lmpromp_ppl.models.hyper import Hyperparameters
+from lmpromp_ppl.reproduce._common import SETTINGS, Claim, Context, ExperimentOutput, Settings, mean_se, progress_bar
 from lmpromp_ppl.reproduce.prediction import Setting, Task, effective_rank, noisy_copy, prediction_tasks, run_fold
 
 __all__ = ["BETAS", "sweep_task", "hyper_sweep", "run"]
@@ -28,13 +29,13 @@ __all__ = ["BETAS", "sweep_task", "hyper_sweep", "run"]
 BETAS = (1.0, 10.0, 50.0, 100.0, 200.0, 500.0, 1000.0, 5000.0)
 
 
-def sweep_task(quick: bool, seed: int) -> tuple[Task, Setting]:
+def sweep_task(quick: bool, seed: int, settings: Settings = SETTINGS["thesis"]) -> tuple[Task, Setting]:
     """GunPoint (16 demonstrations, V = 10, every other demonstration held out) with noise 0.1 and
     every 4th sample; quick: the quick prediction task with noise 0.1 and every 2nd sample."""
-    task = prediction_tasks(quick, seed)[0]
+    task = prediction_tasks(quick, seed, settings)[0]
     if quick:
         return task, Setting(noise=0.1, interval=2)
-    return Task(task.label, task.demos, task.num_basis, 10, task.folds[::2]), Setting(noise=0.1, interval=4)
+    return dataclasses.replace(task, latent_dim=10, folds=task.folds[::2]), Setting(noise=0.1, interval=4)
 
 
 def hyper_sweep(
@@ -91,10 +92,11 @@ def _summary(record: dict) -> dict:
 
 def run(context: Context) -> ExperimentOutput:
     """Run the beta sweep and the learned-beta fit; figure ``beta.png``."""
-    task, setting = sweep_task(context.quick, context.seed)
+    task, setting = sweep_task(context.quick, context.seed, context.settings)
+    base = context.settings.hyper
     betas = (1.0, 100.0, 5000.0) if context.quick else BETAS
     train_eval = 2 if context.quick else 4
-    hypers = [THESIS.replace(beta=b) for b in betas] + [THESIS.replace(learn_beta=True)]
+    hypers = [base.replace(beta=b, learn_beta=False) for b in betas] + [base.replace(learn_beta=True)]
     with progress_bar(len(hypers) * len(task.folds), "beta", context.progress) as bar:
         records = hyper_sweep(task, setting, hypers, context.seed, train_eval, bar)
     rows = [{"beta": b, **_summary(r)} for b, r in zip(betas, records)]
@@ -142,7 +144,7 @@ def run(context: Context) -> ExperimentOutput:
         f"{setting.interval}-th sample, V = {task.latent_dim}. Test: prediction of a held-out movement's rest "
         f"from its first 30 %; training: the same for {train_eval} training movements per fold. RMSE in std. units.",
         "\n".join(table),
-        f"Learned beta (Gamma({THESIS.beta_a0:g}, {THESIS.beta_b0:g}) prior): E[beta] = {learned['beta_mean']:.1f} ± "
+        f"Learned beta (Gamma({base.beta_a0:g}, {base.beta_b0:g}) prior): E[beta] = {learned['beta_mean']:.1f} ± "
         f"{learned['beta_se']:.1f} (standardised units), test RMSE {learned['test_rmse_mean']:.3f} ± "
         f"{learned['test_rmse_se']:.3f}.",
     ])

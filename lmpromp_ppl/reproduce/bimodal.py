@@ -22,7 +22,6 @@ import jax
 import numpy as np
 
 from lmpromp_ppl.data import count_collisions, load_dataset, obstacle_reaching
-from lmpromp_ppl.models.hyper import THESIS
 from lmpromp_ppl.predict import condition, sample_trajectories, trajectory_distribution, via_point
 from lmpromp_ppl.reproduce._common import (
     Claim,
@@ -52,11 +51,13 @@ _SITES = {"promp": ("mu_w", "Sigma_w"), "lmpromp": ("b", "M", "alpha"), "mixture
 
 def _reaching(context: Context, bar) -> tuple[dict, object]:
     L, T, goals, draws = (8, 30, 2, 20) if context.quick else (20, 100, 10, 100)
-    J, V = 8, 3
+    settings = context.settings
+    J, V, width = settings.num_basis(8), 3, settings.width
+    hyper = settings.hyper.replace(latent_dim=V, num_components=2)
     demos = obstacle_reaching(L=L, T=T, seed=context.seed)
     meta = demos.metadata
-    data, scaling, _ = standardised_model_data(demos, J)
-    fits = fit_models(data, THESIS.replace(latent_dim=V, num_components=2), MODEL_NAMES, context.seed)
+    data, scaling, _ = standardised_model_data(demos, J, width=width)
+    fits = fit_models(data, hyper, MODEL_NAMES, context.seed)
     ends = np.stack([p[-1, :3] for p in demos.positions])
     rng = np.random.default_rng([context.seed, 5])
     targets = rng.uniform(ends.min(axis=0), ends.max(axis=0), size=(goals, 3))
@@ -67,14 +68,15 @@ def _reaching(context: Context, bar) -> tuple[dict, object]:
     component_means = []
     examples = {}
     for g, target in enumerate(targets):
-        obs = via_point(1.0, target, dofs=[0, 1, 2], position_sd=0.005, num_dofs=7, num_basis=J, scaling=scaling)
+        obs = via_point(1.0, target, dofs=[0, 1, 2], position_sd=0.005, num_dofs=7, num_basis=J, width=width,
+                        scaling=scaling)
         for name, fit in fits.items():
-            conditioned = condition(name, {k: fit.params[k] for k in _SITES[name]}, obs, THESIS.gamma, exact=True)
+            conditioned = condition(name, {k: fit.params[k] for k in _SITES[name]}, obs, hyper.gamma, exact=True)
             key, sub = jax.random.split(key)
             paths = scaling.invert(np.asarray(sample_trajectories(sub, conditioned.weights, phase, draws, num_dofs=7,
-                                                                  num_basis=J)))
+                                                                  num_basis=J, width=width)))
             samples[name].append(count_collisions(paths, meta) / draws)
-            moments = trajectory_distribution(conditioned.weights, phase, num_dofs=7, num_basis=J)
+            moments = trajectory_distribution(conditioned.weights, phase, num_dofs=7, num_basis=J, width=width)
             mean_path = scaling.invert(np.asarray(moments.mean))
             means[name].append(float(count_collisions(mean_path, meta)))
             if name == "mixture":
@@ -110,8 +112,10 @@ def run(context: Context) -> ExperimentOutput:
         lasa = {}
         for label, spec, J, folds in shapes:
             d = load_dataset(spec)
-            task = Task(f"LASA {label}", d, J, 3, folds or tuple(range(d.num_demos)))
-            lasa[task.label] = loo_sweep(task, [Setting(observed_fraction=0.0)], THESIS, MODEL_NAMES, context.seed, bar)
+            task = Task(f"LASA {label}", d, context.settings.num_basis(J), 3, folds or tuple(range(d.num_demos)),
+                        context.settings.width)
+            lasa[task.label] = loo_sweep(task, [Setting(observed_fraction=0.0)], context.settings.hyper, MODEL_NAMES,
+                                         context.seed, bar)
     _figure(demos, examples, targets, context.out / "bimodal.png")
     p, m = reaching["promp"], reaching["mixture"]
     wins, losses, n = gain_counts(lasa, "mixture", "lpd")

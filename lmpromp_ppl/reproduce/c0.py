@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from lmpromp_ppl.models.hyper import THESIS
 from lmpromp_ppl.reproduce._common import Claim, Context, ExperimentOutput, progress_bar
 from lmpromp_ppl.reproduce.beta import _summary, hyper_sweep, sweep_task
 
@@ -25,9 +24,9 @@ PRIOR_MEAN = 100.0
 
 def run(context: Context) -> ExperimentOutput:
     """Run the c0 sweep; figure ``c0.png``."""
-    task, setting = sweep_task(context.quick, context.seed)
+    task, setting = sweep_task(context.quick, context.seed, context.settings)
     values = (0.05, 1.0, 500.0) if context.quick else C0_VALUES
-    hypers = [THESIS.replace(c0=c, d0=c / PRIOR_MEAN) for c in values]
+    hypers = [context.settings.hyper.replace(c0=c, d0=c / PRIOR_MEAN) for c in values]
     with progress_bar(len(hypers) * len(task.folds), "c0", context.progress) as bar:
         records = hyper_sweep(task, setting, hypers, context.seed, 0, bar)
     rows = [{"c0": c, "d0": c / PRIOR_MEAN, **_summary(r)} for c, r in zip(values, records)]

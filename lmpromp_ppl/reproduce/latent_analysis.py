@@ -16,7 +16,6 @@ import numpy as np
 
 from lmpromp_ppl.data import load_dataset
 from lmpromp_ppl.data.core import Demonstrations
-from lmpromp_ppl.models.hyper import THESIS
 from lmpromp_ppl.models.promp import classical_promp
 from lmpromp_ppl.reproduce._common import (
     Claim,
@@ -57,8 +56,9 @@ def run(context: Context) -> ExperimentOutput:
     """Fit GunPoint, draw Fig. 5.8 as ``latent-analysis.png``."""
     demos, split = _pooled(context.quick)
     J, V = (8, 3) if context.quick else (10, 10)
-    data, _, _ = standardised_model_data(demos, J)
-    fit = fit_lmpromp(data, THESIS.replace(latent_dim=V), context.seed)
+    J = context.settings.num_basis(J)
+    data, _, _ = standardised_model_data(demos, J, width=context.settings.width)
+    fit = fit_lmpromp(data, context.settings.hyper.replace(latent_dim=V), context.seed)
     M, h = np.asarray(fit.params["M"]), np.asarray(fit.params["h"])
     norms = np.linalg.norm(M, axis=0)
     order = np.argsort(-norms)

@@ -9,7 +9,6 @@ for noise of s.d. 0, 0.1, 0.2 and 0.4 times each DoF's standard deviation
 
 from __future__ import annotations
 
-from lmpromp_ppl.models.hyper import THESIS
 from lmpromp_ppl.reproduce._common import Claim, Context, ExperimentOutput, progress_bar
 from lmpromp_ppl.reproduce.prediction import (
     MODEL_NAMES,
@@ -36,17 +35,17 @@ def _train_sizes(task, quick: bool) -> tuple[int, ...]:
 
 def run(context: Context) -> ExperimentOutput:
     """Run the noise and training-size sweeps; figure ``noise.png``."""
-    tasks = prediction_tasks(context.quick, context.seed)
+    tasks = prediction_tasks(context.quick, context.seed, context.settings)
     levels = (0.0, 0.2) if context.quick else NOISE_LEVELS
     total = sum(len(t.folds) * (len(levels) + len(_train_sizes(t, context.quick))) for t in tasks)
     noise_rows, size_rows = {}, {}
     with progress_bar(total, "noise", context.progress) as bar:
         for task in tasks:
             noise_rows[task.label] = loo_sweep(
-                task, [Setting(noise=v) for v in levels], THESIS, MODEL_NAMES, context.seed, bar
+                task, [Setting(noise=v) for v in levels], context.settings.hyper, MODEL_NAMES, context.seed, bar
             )
             sizes = [Setting(train_size=n) for n in _train_sizes(task, context.quick)]
-            size_rows[task.label] = loo_sweep(task, sizes, THESIS, MODEL_NAMES, context.seed, bar) + \
+            size_rows[task.label] = loo_sweep(task, sizes, context.settings.hyper, MODEL_NAMES, context.seed, bar) + \
                 [noise_rows[task.label][0]]
     sweep_figure(noise_rows, "noise", MODEL_NAMES, context.out / "noise.png", "noise s.d. / DoF s.d.")
     sweep_figure(size_rows, "train_size", MODEL_NAMES, context.out / "noise_train_size.png",

@@ -31,7 +31,9 @@ from lmpromp_ppl.data.core import Demonstrations
 from lmpromp_ppl.models.hyper import Hyperparameters
 from lmpromp_ppl.predict import condition, observe, score_heldout
 from lmpromp_ppl.reproduce._common import (
+    SETTINGS,
     FitOutcome,
+    Settings,
     fit_lmpromp,
     fit_mixture,
     fit_promp,
@@ -95,6 +97,7 @@ class Task:
     num_basis : J
     latent_dim : V
     folds : held-out demonstrations (indices)
+    width : basis width
     """
 
     label: str
@@ -102,6 +105,7 @@ class Task:
     num_basis: int
     latent_dim: int
     folds: tuple[int, ...]
+    width: float
 
 
 @dataclass
@@ -150,6 +154,7 @@ def predict_remainder(
     observation_var: np.ndarray,
     num_basis: int,
     gamma: float,
+    width: float,
 ) -> tuple[float | None, float | None]:
     """(RMSE, log density per row) of the clean remainder given the observed initial segment.
 
@@ -162,8 +167,9 @@ def predict_remainder(
     seen = (phases <= setting.observed_fraction) & keep
     rest = phases > setting.observed_fraction
     obs = observe(phases[seen], noisy[seen], noise_sd=np.sqrt(observation_var), num_dofs=num_dofs,
-                  num_basis=num_basis)
-    target = observe(phases[rest], clean[rest], noise_sd=TARGET_SD, num_dofs=num_dofs, num_basis=num_basis)
+                  num_basis=num_basis, width=width)
+    target = observe(phases[rest], clean[rest], noise_sd=TARGET_SD, num_dofs=num_dofs, num_basis=num_basis,
+                     width=width)
     params = {k: fit.params[k] for k in _SITES[model]}
     conditioned = condition(model, params, obs, gamma, exact=True)
     score = score_heldout(conditioned.weights, target)
@@ -197,7 +203,7 @@ def run_fold(
         others = np.sort(rng.choice(others, size=setting.train_size, replace=False))
     hyper = hyper.replace(latent_dim=min(task.latent_dim, len(others) - 1))
     keep = np.arange(demos.lengths[0]) % setting.interval == 0
-    data, scaling, _ = standardised_model_data(noisy.subset(others), task.num_basis, keep)
+    data, scaling, _ = standardised_model_data(noisy.subset(others), task.num_basis, keep, width=task.width)
     fits = fit_models(data, hyper, models, seed)
     noise_sd = setting.noise * np.concatenate(demos.positions).std(axis=0)
 
@@ -210,7 +216,7 @@ def run_fold(
             beta = float(fit.params.get("beta", hyper.beta)) if name != "promp" else hyper.beta
             variance = 1.0 / beta + (noise_sd / scaling.scale) ** 2
             rmse, lpd = predict_remainder(
-                name, fit, phases, noisy_i, clean_i, keep, setting, variance, task.num_basis, hyper.gamma
+                name, fit, phases, noisy_i, clean_i, keep, setting, variance, task.num_basis, hyper.gamma, task.width
             )
             result.rmse[name], result.lpd[name] = rmse, lpd
             result.converged[name], result.finite[name] = fit.converged, fit.finite
@@ -313,28 +319,30 @@ def effective_rank(M: np.ndarray, h: np.ndarray) -> dict:
 LASA_SHAPES = ("GShape", "Angle", "WShape")
 
 
-def prediction_tasks(quick: bool, seed: int) -> list[Task]:
+def prediction_tasks(quick: bool, seed: int, settings: Settings = SETTINGS["thesis"]) -> list[Task]:
     """The datasets of the prediction experiments.
 
     Full: GunPoint (train split, 8 demonstrations of each class, J = 10, V = 5,
     leave-one-out over all 16) and the LASA shapes :data:`LASA_SHAPES` (every
     20th sample, 7 demonstrations, J = 10, V = 5, leave-one-out over all 7).
-    Quick: LASA GShape (every 50th sample, J = 8, V = 3), three folds.
+    Quick: LASA GShape (every 50th sample, J = 8, V = 3), three folds.  J and
+    the width are the thesis's, scaled by ``settings`` (:data:`SETTINGS`).
     """
     from lmpromp_ppl.data import load_dataset
 
+    J, width = settings.num_basis, settings.width
     if quick:
         demos = load_dataset("lasa:GShape?every=50")
-        return [Task("LASA GShape", demos, 8, 3, (0, 1, 2))]
+        return [Task("LASA GShape", demos, J(8), 3, (0, 1, 2), width)]
     gunpoint = load_dataset("gunpoint:train")
     rng = np.random.default_rng([seed, 16])
     labels = np.asarray(gunpoint.labels)
     chosen = np.sort(np.concatenate([rng.choice(np.flatnonzero(labels == c), 8, replace=False)
                                      for c in sorted(set(labels))]))
-    tasks = [Task("GunPoint", gunpoint.subset(chosen), 10, 5, tuple(range(16)))]
+    tasks = [Task("GunPoint", gunpoint.subset(chosen), J(10), 5, tuple(range(16)), width)]
     for shape in LASA_SHAPES:
         demos = load_dataset(f"lasa:{shape}?every=20")
-        tasks.append(Task(f"LASA {shape}", demos, 10, 5, tuple(range(demos.num_demos))))
+        tasks.append(Task(f"LASA {shape}", demos, J(10), 5, tuple(range(demos.num_demos)), width))
     return tasks
 
 

@@ -19,8 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from lmpromp_ppl.basis import rbf_basis
-from lmpromp_ppl.data.synthetic import four_clusters
-from lmpromp_ppl.models.hyper import THESIS
+from lmpromp_ppl.data.synthetic import GENERATOR_WIDTH, four_clusters
 from lmpromp_ppl.predict import observe, prior, score_heldout
 from lmpromp_ppl.reproduce._common import (
     Claim,
@@ -50,12 +49,14 @@ def run(context: Context) -> ExperimentOutput:
     """Fit the three priors, score held-out trajectories, draw Fig. 5.3 as ``priors.png``."""
     num = 16 if context.quick else 80
     T = 20 if context.quick else 50
-    J = 8
+    # the fits use the generator's basis whatever the settings: the clusters' plane U
+    # and centres live in its weight space (only the hyperparameters follow the settings)
+    J, width = 8, GENERATOR_WIDTH
     demos = four_clusters(L=num, D=1, J=J, T=T, seed=context.seed)
     meta = demos.metadata
     train, test = np.arange(num // 2), np.arange(num // 2, num)
-    data, scaling, _ = standardised_model_data(demos.subset(train), J)
-    hyper = THESIS.replace(latent_dim=2)
+    data, scaling, _ = standardised_model_data(demos.subset(train), J, width=width)
+    hyper = context.settings.hyper.replace(latent_dim=2)
     fits = {
         "promp": fit_promp(data),
         "lmpromp": fit_lmpromp(data, hyper, context.seed),
@@ -67,7 +68,8 @@ def run(context: Context) -> ExperimentOutput:
     U = np.asarray(meta["subspace"])
     centres = (np.asarray(meta["centres"]) - shift) / scale
     # distances are measured between mean trajectories (weights are poorly identified by least squares)
-    phi = np.asarray(rbf_basis(np.linspace(0.0, 1.0, 200), J))
+    grid = np.linspace(0.0, 1.0, 200)
+    phi = np.asarray(rbf_basis(grid, J, width))
     centre_paths = centres @ phi.T
     radius = float(np.sqrt(np.mean((centre_paths[0] - phi @ ((np.asarray(meta["b"]) - shift) / scale)) ** 2)))
     noise_sd = 1.0 / np.sqrt(float(meta["beta"])) / scale
@@ -79,7 +81,7 @@ def run(context: Context) -> ExperimentOutput:
         per_demo = []
         for i in test:
             y = scaling.apply(demos.positions[i])
-            target = observe(demos.phases()[i], y, noise_sd=noise_sd, num_dofs=1, num_basis=J)
+            target = observe(demos.phases()[i], y, noise_sd=noise_sd, num_dofs=1, num_basis=J, width=width)
             per_demo.append(float(score_heldout(predictive, target).log_density_per_row))
         densities[name] = per_demo
         means = np.asarray(predictive.means)

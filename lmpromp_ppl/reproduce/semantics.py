@@ -16,7 +16,6 @@ import numpy as np
 
 from lmpromp_ppl.basis import rbf_basis
 from lmpromp_ppl.data import load_dataset
-from lmpromp_ppl.models.hyper import THESIS
 from lmpromp_ppl.reproduce._common import (
     Claim,
     Context,
@@ -43,9 +42,9 @@ def datasets(quick: bool) -> list[tuple[str, object, int, int]]:
 
 
 def latent_paths(b: np.ndarray, M: np.ndarray, v: int, gamma: float, num_dofs: int, num_basis: int,
-                 phase: np.ndarray) -> np.ndarray:
+                 phase: np.ndarray, width: float) -> np.ndarray:
     """(5, P, D) mean trajectories for h_v at -2..2 prior standard deviations (others 0), standardised units."""
-    phi = np.asarray(rbf_basis(phase, num_basis))
+    phi = np.asarray(rbf_basis(phase, num_basis, width))
     weights = b[None] + np.outer(_STEPS / np.sqrt(gamma), M[:, v])
     return np.einsum("pj,sdj->spd", phi, weights.reshape(len(_STEPS), num_dofs, num_basis))
 
@@ -70,16 +69,18 @@ def run(context: Context) -> ExperimentOutput:
     sets = datasets(context.quick)
     fig, axes = matplotlib_figure(len(sets), 2, (10, 3.6 * len(sets)))
     numbers, sizes = {}, {}
+    width, hyper = context.settings.width, context.settings.hyper
     for row, (label, demos, J, V) in enumerate(sets):
-        data, scaling, scaled = standardised_model_data(demos, J)
-        fit = fit_lmpromp(data, THESIS.replace(latent_dim=V), context.seed)
+        J = context.settings.num_basis(J)
+        data, scaling, scaled = standardised_model_data(demos, J, width=width)
+        fit = fit_lmpromp(data, hyper.replace(latent_dim=V), context.seed)
         b, M = np.asarray(fit.params["b"]), np.asarray(fit.params["M"])
         norms = np.linalg.norm(M, axis=0)
         order = np.argsort(-norms)
         inverse = 1.0 / np.asarray(fit.params["lam"])
         dims = []
         for col, v in enumerate(order[:2]):
-            paths = latent_paths(b, M, int(v), THESIS.gamma, demos.num_dofs, J, phase)
+            paths = latent_paths(b, M, int(v), hyper.gamma, demos.num_dofs, J, phase, width)
             effects = _effects(paths)
             effects["dimension"] = int(v)
             effects["column_norm"] = float(norms[v])
@@ -96,8 +97,8 @@ def run(context: Context) -> ExperimentOutput:
             ax.set_xlabel("phase" if demos.num_dofs == 1 else demos.dof_names[0])
             ax.set_ylabel(demos.dof_names[0] if demos.num_dofs == 1 else demos.dof_names[1])
         axes[row, 0].legend(fontsize=7)
-        profiles = [(latent_paths(b, M, int(v), THESIS.gamma, demos.num_dofs, J, phase)[-1]
-                     - latent_paths(b, M, int(v), THESIS.gamma, demos.num_dofs, J, phase)[0]).ravel() for v in order[:2]]
+        paths = [latent_paths(b, M, int(v), hyper.gamma, demos.num_dofs, J, phase, width) for v in order[:2]]
+        profiles = [(p[-1] - p[0]).ravel() for p in paths]
         scales = [np.linalg.norm(p) for p in profiles]
         # a switched-off second dimension changes nothing: not a distinct effect (cosine 1)
         cosine = float(abs(profiles[0] @ profiles[1]) / (scales[0] * scales[1])) if min(scales) > 1e-8 * max(scales) else 1.0

@@ -8,7 +8,6 @@ and of the observed segment (the thesis's 50-300 ms sampling intervals).
 
 from __future__ import annotations
 
-from lmpromp_ppl.models.hyper import THESIS
 from lmpromp_ppl.reproduce._common import Claim, Context, ExperimentOutput, progress_bar
 from lmpromp_ppl.reproduce.prediction import (
     MODEL_NAMES,
@@ -33,13 +32,13 @@ def intervals(task, quick: bool) -> tuple[int, ...]:
 
 def run(context: Context) -> ExperimentOutput:
     """Run the sampling-interval sweep; figure ``sparsity.png``."""
-    tasks = prediction_tasks(context.quick, context.seed)
+    tasks = prediction_tasks(context.quick, context.seed, context.settings)
     total = sum(len(t.folds) * len(intervals(t, context.quick)) for t in tasks)
     rows = {}
     with progress_bar(total, "sparsity", context.progress) as bar:
         for task in tasks:
             settings = [Setting(interval=k) for k in intervals(task, context.quick)]
-            rows[task.label] = loo_sweep(task, settings, THESIS, MODEL_NAMES, context.seed, bar)
+            rows[task.label] = loo_sweep(task, settings, context.settings.hyper, MODEL_NAMES, context.seed, bar)
     sweep_figure(rows, "interval", MODEL_NAMES, context.out / "sparsity.png", "sampling interval (samples)")
     sparse = {k: [r for r in v if r["setting"]["interval"] > 1] for k, v in rows.items()}
     claims = []
