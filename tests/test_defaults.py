@@ -200,6 +200,14 @@ def test_real_data_command_writes_the_table(tmp_path, capsys):
     (row,) = document["rows"]
     assert row["folds"] == [0, 6] and set(row["passes"]) == set(document["criteria"])
     assert (out / "predictive.png").stat().st_size > 0
+    # --merge keeps the rows of pairs not run now and records both commands
+    assert main(["real-data", "--datasets", "lasa:Line?every=20", "--engines", "cavi", "--max-folds", "1",
+                 "--mixture-seeds", "0", "--out", str(out), "--quiet", "--merge", "--force"]) == 0
+    merged = json.loads((out / "real-data.json").read_text())
+    assert [r["dataset"] for r in merged["rows"]] == ["lasa:Angle?every=20", "lasa:Line?every=20"]
+    assert merged["rows"][0] == row and " && " in merged["command"]
+    assert main(["real-data", "--engines", "cavi", "--merge", "--force", "--out", str(tmp_path / "none")]) == 2
+    assert "--merge needs an existing" in capsys.readouterr().err and not (tmp_path / "none").exists()
     # a bad engine is one line and status 2, and leaves no output behind
     assert main(["real-data", "--engines", "cavi,gibbs", "--out", str(tmp_path / "bad")]) == 2
     assert "unknown engine" in capsys.readouterr().err and not (tmp_path / "bad").exists()

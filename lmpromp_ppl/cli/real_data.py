@@ -28,6 +28,13 @@ def real_data_command(
     nuts_datasets: str = typer.Option(_NUTS_DATASETS, "--nuts-datasets", help="The subsample that NUTS runs on (comma-separated)."),
     max_folds: int = typer.Option(8, "--max-folds", min=1, help="Held-out demonstrations per dataset (CAVI, SVI)."),
     nuts_folds: int = typer.Option(3, "--nuts-folds", min=1, help="Held-out demonstrations per dataset for NUTS."),
+    nuts_chains: int = typer.Option(4, "--nuts-chains", min=1, help="NUTS chains per fit."),
+    nuts_draws: int = typer.Option(500, "--nuts-draws", min=10, help="NUTS warm-up and kept draws per chain (each)."),
+    merge: bool = typer.Option(
+        False, "--merge",
+        help="Keep the rows of an existing real-data.json in --out for (dataset, engine) pairs not run now, "
+             "and its mixture rows when --mixture-seeds is 0 (needs --force).",
+    ),
     mixture_seeds: int = typer.Option(10, "--mixture-seeds", min=0, help="Seeds per pooled LASA set for the mixture check (0: skip)."),
     seed: int = typer.Option(0, "--seed", help="Seed for every random choice."),
     force: bool = typer.Option(False, "--force", help="Write into an existing non-empty directory."),
@@ -47,14 +54,29 @@ def real_data_command(
     from lmpromp_ppl.data import load_dataset
 
     loaded = {name: load_dataset(name) for name in dict.fromkeys(names + (_split(nuts_datasets) if "nuts" in engine_list else []))}
+    previous = None
+    if merge:
+        import json
+
+        path = Path(out) / "real-data.json"
+        if not path.is_file():
+            raise LmprompError(f"--merge needs an existing {path}")
+        try:
+            previous = json.loads(path.read_text())
+        except (OSError, ValueError) as exc:
+            raise LmprompError(f"cannot read {path}: {exc}") from None
     target = prepare_out_dir(out, force)
     echo = (lambda msg: None) if quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
     rows = []
     for engine in engine_list:
         subset = _split(nuts_datasets) if engine == "nuts" else names
         folds = nuts_folds if engine == "nuts" else max_folds
+        options = {"num_chains": nuts_chains, "num_warmup": nuts_draws, "num_samples": nuts_draws} \
+            if engine == "nuts" else {}
         for name in subset:
-            row = real_data.dataset_row(name, engine, max_folds=folds, seed=seed, demos=loaded[name])
+            row = real_data.dataset_row(name, engine, max_folds=folds, seed=seed, options=options, demos=loaded[name])
+            if options:
+                row["engine_options"] = options
             rows.append(row)
             ok = "all criteria met" if all(row["passes"].values()) else \
                 "fails " + ", ".join(k for k, v in row["passes"].items() if not v)
@@ -73,8 +95,16 @@ def real_data_command(
     if datasets:
         parts.append(f"--datasets '{datasets}'")
     if "nuts" in engine_list:
-        parts += [f"--nuts-datasets '{nuts_datasets}'", f"--nuts-folds {nuts_folds}"]
+        parts += [f"--nuts-datasets '{nuts_datasets}'", f"--nuts-folds {nuts_folds}",
+                  f"--nuts-chains {nuts_chains}", f"--nuts-draws {nuts_draws}"]
     command = " ".join(parts)
+    if previous is not None:
+        parts.append("--merge --force")
+        command = f"{previous.get('command', '')} && {' '.join(parts)}"
+        done = {(r["dataset"], r["engine"]) for r in rows}
+        rows = [r for r in previous.get("rows", []) if (r["dataset"], r["engine"]) not in done] + rows
+        if not mixture_seeds:
+            mixture = list(previous.get("mixture", []))
     real_data.write_report(target, rows, mixture, command=command,
                            figure=[n for n in names if n.startswith("lasa:")][:7] + [n for n in names if n.startswith("gunpoint")][:1])
     if not quiet:

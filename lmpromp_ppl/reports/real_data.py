@@ -364,6 +364,9 @@ def write_report(out, rows: Sequence[dict], mixture: Sequence[dict], *, command:
         "(`uncond.`: the population mean instead).  `noise s.d.`: the fitted observation noise.  `max abs(w)`:",
         "the largest posterior-mean weight (standardised units).  ✗ marks a failed criterion.",
         "",
+        *[f"{engine} ran with the options {options}." for engine, options in
+          {r["engine"]: r["engine_options"] for r in rows if r.get("engine_options")}.items()],
+        "",
         "## Criteria met",
         "",
         "| engine | criterion | datasets |",
