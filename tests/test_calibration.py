@@ -147,24 +147,55 @@ def test_problem_validation():
     assert SbcProblem.from_dict(SbcProblem().to_dict()) == SbcProblem()
 
 
-def test_heldout_lpd_is_the_marginal_density():
+def test_heldout_scores_predict_the_rest_from_the_first_third():
+    """lpd and RMSE score one prediction: the rows after the first third given it, by the Schur complement of
+    the rows' joint marginal (w and h integrated out), with the fit's beta when the point holds one."""
     hyper = preset("thesis", latent_dim=1)
     rng = np.random.default_rng(0)
-    psi = rng.normal(size=(2, 6, 3))
+    psi = rng.normal(size=(2, 6, 3))  # D = 2 DoFs, 3 time steps (the second demonstration 2)
     y = rng.normal(size=(2, 6))
     mask = np.ones((2, 6))
     mask[1, 4:] = 0.0
     point = {"b": rng.normal(size=3), "M": rng.normal(size=(3, 1)), "alpha": 2.0}
     from lmpromp_ppl.data.core import ModelData
 
-    scores = heldout_scores(point, ModelData(jnp.asarray(psi), jnp.asarray(y), jnp.asarray(mask)), hyper)
-    cov_w = np.eye(3) / 2.0 + point["M"] @ point["M"].T / hyper.gamma
-    total = 0.0
-    for i, n in ((0, 6), (1, 4)):
-        p = psi[i, :n]
-        total += stats.multivariate_normal(p @ point["b"], np.eye(n) / hyper.beta + p @ cov_w @ p.T).logpdf(y[i, :n])
-    np.testing.assert_allclose(scores["lpd"], total / 10, rtol=1e-10)
-    assert scores["rmse"] > 0
+    data = ModelData(jnp.asarray(psi), jnp.asarray(y), jnp.asarray(mask))
+
+    def expected(beta):
+        cov_w = np.eye(3) / 2.0 + point["M"] @ point["M"].T / hyper.gamma
+        lpd, sq, n_rest = 0.0, 0.0, 0
+        for i, n in ((0, 6), (1, 4)):
+            p, yi = psi[i, :n], y[i, :n]
+            mean, cov = p @ point["b"], np.eye(n) / beta + p @ cov_w @ p.T
+            s, r = slice(0, 2), slice(2, n)  # one observed time step of 2 DoFs in both
+            gain = cov[r, s] @ np.linalg.inv(cov[s, s])
+            mu = mean[r] + gain @ (yi[s] - mean[s])
+            lpd += stats.multivariate_normal(mu, cov[r, r] - gain @ cov[s, r]).logpdf(yi[r])
+            sq += np.sum((yi[r] - mu) ** 2)
+            n_rest += n - 2
+        return lpd / n_rest, np.sqrt(sq / n_rest)
+
+    scores = heldout_scores(point, data, hyper, num_dofs=2)
+    lpd, rmse = expected(hyper.beta)
+    np.testing.assert_allclose([scores["lpd"], scores["rmse"]], [lpd, rmse], rtol=1e-9)
+    learned = heldout_scores({**point, "beta": 7.0}, data, hyper, num_dofs=2)
+    np.testing.assert_allclose([learned["lpd"], learned["rmse"]], expected(7.0), rtol=1e-9)
+    assert abs(learned["lpd"] - scores["lpd"]) > 1e-3
+
+
+@pytest.mark.filterwarnings("ignore::lmpromp_ppl.errors.ConvergenceWarning")
+def test_sweep_metrics_rank_a_beta_grid_alike():
+    """The issue's example: on LASA GShape the two held-out metrics used to rank a beta grid in opposite orders."""
+    from lmpromp_ppl.calibration.sweep import sweep_task
+
+    scores = {}
+    for beta in (1.0, 10.0, 100.0):
+        spec = {"dataset": "lasa:GShape?every=20", "params": {"beta": beta, "latent_dim": 1}, "seed": 0,
+                "test_fraction": 0.25, "options": {"num_restarts": 1}}
+        scores[beta] = sweep_task(spec)["heldout"]
+    by_lpd = sorted(scores, key=lambda b: -scores[b]["lpd"])
+    by_rmse = sorted(scores, key=lambda b: scores[b]["rmse"])
+    assert by_lpd == by_rmse
 
 
 def test_grid_and_split_validation():

@@ -9,6 +9,7 @@ from typing import Optional
 
 import typer
 
+from lmpromp_ppl.basis import DEFAULT_NUM_BASIS
 from lmpromp_ppl.cli import app
 from lmpromp_ppl.cli._common import SEED_MAX, make_dirs, open_fraction, positive
 from lmpromp_ppl.errors import LmprompError
@@ -145,8 +146,8 @@ def sweep_command(
     out: Path = typer.Option(..., "--out", help="Directory: sweep.json, sweep.md and tasks/."),
     grid: list[str] = typer.Option(..., "--grid", help="NAME=V1,V2 (repeatable): hyperparameter fields or num_basis."),
     metric: str = typer.Option("lpd", help="Held-out metric to rank by: lpd (higher is better) or rmse."),
-    preset_name: str = typer.Option("thesis", "--preset", help="Hyperparameter preset the grid changes."),
-    num_basis: int = typer.Option(10, "--num-basis", "-J", min=2, help="Basis functions per DoF (unless in the grid)."),
+    preset_name: str = typer.Option("default", "--preset", help="Hyperparameter preset the grid changes."),
+    num_basis: int = typer.Option(DEFAULT_NUM_BASIS, "--num-basis", "-J", min=2, help="Basis functions per DoF (unless in the grid)."),
     test_fraction: float = typer.Option(0.25, "--test-fraction", callback=open_fraction, help="Fraction of demonstrations held out."),
     max_iter: int = typer.Option(2000, "--max-iter", min=1, help="CAVI: maximum sweeps."),
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Address of an existing dask scheduler (default: a LocalCluster on 127.0.0.1)."),
