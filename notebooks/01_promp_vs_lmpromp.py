@@ -43,7 +43,7 @@ import os
 SIZE = os.environ.get("LMPROMP_NOTEBOOK_SIZE", "full")
 assert SIZE in ("small", "full"), f"LMPROMP_NOTEBOOK_SIZE must be small or full, got {SIZE!r}"
 EVERY = 50  # keep every 50th of LASA's 1000 samples: 21 per demonstration
-NUM_BASIS = 6  # J, basis functions per DoF
+NUM_BASIS = 8  # J, basis functions per DoF (few, so that the ProMP's d x d covariance stays small)
 NUM_PATHS = 8 if SIZE == "small" else 20  # sampled trajectories per figure
 print(f"size={SIZE}: every={EVERY}, J={NUM_BASIS}, {NUM_PATHS} sampled paths per figure")
 
@@ -164,7 +164,10 @@ def plot_distribution(ax, weights, color, label, key=0, n=NUM_PATHS):
 # `docs/defaults.md`): the thesis's priors, but with the observation noise
 # $\beta$ learned from the data instead of fixed at 100.  `fit` warns in plain
 # words when a fit is degenerate (for example when a column of $M$ carries
-# the mean movement instead of $b$); with the default basis it does not.
+# the mean movement instead of $b$); the fit's `summary["warnings"]` lists
+# them, and we print it below.  (Try `NUM_BASIS = 6`: six basis functions are
+# too coarse for the G, its weights exceed 10 standard deviations, and `fit`
+# warns that the mean movement is carried by $M h$.)
 
 # %%
 HYPER = lp.preset("default", latent_dim=3)
@@ -178,6 +181,7 @@ active = fit.summary["active_latent_dims"]
 print(f"CAVI: {fit.summary['iterations']} sweeps, converged: {fit.summary['converged']}, ELBO {fit.summary['elbo']:.1f}")
 print("column scales 1/E[lambda_v]:", np.round(1.0 / point["lam"], 4), "-> active dims", active)
 print("residual weight s.d. alpha^-1/2:", float(point["alpha"]) ** -0.5)
+print("degeneracy warnings:", fit.summary["warnings"] or "none")
 
 # %%
 fig, axes = plt.subplots(1, 2, figsize=(10, 4), sharex=True, sharey=True)
@@ -275,17 +279,22 @@ print("E[h | via-point] (LMProMP):", np.round(np.asarray(post_lm.latent.means[0]
 print("target:", np.round(target, 2))
 for name, post in posts.items():
     m = unstandardize(trajectory_distribution(post.weights, np.array([z_via]), num_dofs=D, num_basis=J), scaling)
-    print(f"{name:>24}: mean at phase {z_via} = {np.round(np.asarray(m.mean[0]), 2)}")
+    miss = float(np.linalg.norm(np.asarray(m.mean[0]) - target))
+    print(f"{name:>24}: mean at phase {z_via} = {np.round(np.asarray(m.mean[0]), 2)}, {miss:.2f} mm from the target")
 
 # %% [markdown]
-# The ProMP and the exact LMProMP conditional pass through the via-point.
-# Eqs. 4.6 and 4.7 of the thesis do not, and that is by design: they condition
-# only the control variables, $p(h \mid o)$, and then draw a *new* execution
-# $w = b + M h + \epsilon$ with its own residual $\epsilon$.  The mean can only
-# move along the active columns of $M$ (here one direction in weight space),
-# so it reaches the via-point as far as that direction allows and the rest
-# of the movement stays a G of the kind demonstrated.  `exact=True` also
-# conditions the residual and bends the path through the point.  The ProMP's
+# The ProMP and the exact LMProMP conditional pass through the via-point (the
+# printout gives each mean's distance from it).  Eqs. 4.6 and 4.7 of the thesis
+# need not, by design: they condition only the control variables,
+# $p(h \mid o)$, and then draw a *new* execution $w = b + M h + \epsilon$ with
+# its own residual $\epsilon$.  Their mean can only move along the active
+# columns of $M$ (here one direction in weight space), so it reaches the
+# via-point only as far as that direction allows, and the rest of the movement
+# stays a G of the kind demonstrated.  Here that one direction happens to reach
+# the target, so the two LMProMP conditionals agree; in general they do not
+# (`docs/derivation.md` shows that eqs. 4.6-4.7 are not $p(w \mid o)$).
+# `exact=True` also conditions the residual and bends the path through the
+# point.  The ProMP's
 # adjustment is whatever its regularised covariance, estimated from seven
 # samples, happens to correlate with the via-point.
 #

@@ -213,8 +213,10 @@ display(Markdown(report.split("## Engines")[0]))
 #   (small `smd`): mean-field VI is fine for "where does the movement go".
 # * **Uncertainties** are too small (sd ratio < 1, `coverage90` < 0.9), worst
 #   for $\alpha$ and the weights: do not use mean-field variances as
-#   calibrated error bars; use NUTS, or a richer guide (`svi_lowrank`), when
-#   uncertainty matters (e.g. deciding whether a via-point is reachable).
+#   calibrated error bars; use NUTS when uncertainty matters (e.g. deciding
+#   whether a via-point is reachable).  A richer guide is not automatically
+#   better: read its sd ratios too (`svi_lowrank` above is far from 1 in both
+#   directions, from near 0 for $\alpha$ to above 1 for the weights).
 # * **$\hat k > 0.7$** means $q$ cannot be repaired by importance sampling; it
 #   does not by itself make the predictive mean wrong.
 # * **Compare only identifiable quantities**: $M$ and $h$ differ by rotations
