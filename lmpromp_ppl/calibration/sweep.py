@@ -109,36 +109,39 @@ def heldout_scores(point: Mapping[str, Any], data, hyper, num_dofs: int) -> dict
 
     ``data`` is :class:`~lmpromp_ppl.data.core.ModelData` of the held-out
     demonstrations (rows time-major, ``num_dofs`` per time step); module
-    docstring for the prediction both metrics score.
+    docstring for the prediction both metrics score.  The conditioning and the
+    scores are :func:`lmpromp_ppl.predict.condition_gaussian` and
+    :func:`lmpromp_ppl.predict.score_heldout`.
     """
+    from lmpromp_ppl.predict import GaussianMixture, Observation, condition_gaussian, score_heldout
+
     b = np.asarray(point["b"])
-    M = np.asarray(point["M"])
-    alpha = float(point["alpha"])
-    beta = float(point["beta"]) if "beta" in point else float(hyper.beta)
-    weight_cov = np.eye(b.shape[0]) / alpha + M @ M.T / hyper.gamma
+    weight_cov = np.eye(b.shape[0]) / float(point["alpha"]) + np.asarray(point["M"]) @ np.asarray(point["M"]).T / hyper.gamma
+    noise_var = 1.0 / (float(point["beta"]) if "beta" in point else float(hyper.beta))
+
+    def rows(psi, y, keep):
+        n = int(keep.sum())
+        index = np.flatnonzero(keep)
+        return Observation(psi[keep], y[keep], np.full(n, noise_var), np.zeros(n), index % num_dofs,
+                           np.zeros(n, dtype=int))
+
     total_lpd, total_sq, total_n = 0.0, 0.0, 0
     for psi, y, mask in zip(*(np.asarray(a) for a in data)):
         keep = mask > 0
         steps = np.arange(psi.shape[0]) // num_dofs
-        num_steps = int(steps[keep].max()) + 1
-        seen = keep & (steps < max(1, int(math.ceil(OBSERVED_FRACTION * num_steps))))
+        seen = keep & (steps < max(1, math.ceil(OBSERVED_FRACTION * (steps[keep].max() + 1))))
         rest = keep & ~seen
         if not rest.any():
             continue
-        po, pr = psi[seen], psi[rest]
-        gain = np.linalg.solve(np.eye(po.shape[0]) / beta + po @ weight_cov @ po.T, po @ weight_cov).T
-        mean_w = b + gain @ (y[seen] - po @ b)
-        cov_w = weight_cov - gain @ po @ weight_cov
-        mean = pr @ mean_w
-        cov = np.eye(pr.shape[0]) / beta + pr @ cov_w @ pr.T
-        chol = np.linalg.cholesky(0.5 * (cov + cov.T))
-        z = np.linalg.solve(chol, y[rest] - mean)
-        total_lpd += -0.5 * (z @ z) - np.sum(np.log(np.diag(chol))) - 0.5 * z.shape[0] * math.log(2 * math.pi)
-        total_sq += float(np.sum((y[rest] - mean) ** 2))
-        total_n += z.shape[0]
+        mean_w, cov_w, _ = condition_gaussian(b, weight_cov, rows(psi, y, seen))
+        score = score_heldout(GaussianMixture(np.zeros(1), mean_w[None], cov_w[None]), rows(psi, y, rest))
+        n = int(rest.sum())
+        total_lpd += float(score.log_density)
+        total_sq += float(score.rmse) ** 2 * n
+        total_n += n
     if total_n == 0:
         raise LmprompError("no held-out values to predict: every held-out demonstration is too short")
-    return {"lpd": float(total_lpd / total_n), "rmse": math.sqrt(total_sq / total_n)}
+    return {"lpd": total_lpd / total_n, "rmse": math.sqrt(total_sq / total_n)}
 
 
 def sweep_task(spec: Mapping[str, Any]) -> dict[str, Any]:
