@@ -39,6 +39,7 @@ from jax.typing import ArrayLike
 __all__ = [
     "DEFAULT_NUM_BASIS",
     "DEFAULT_WIDTH",
+    "THESIS_WIDTH",
     "centres",
     "rbf_basis",
     "rbf_basis_derivative",
@@ -52,6 +53,8 @@ __all__ = [
 DEFAULT_NUM_BASIS = 20
 #: Basis width: the Gaussians' variance in units of the squared centre spacing (docs/defaults.md).
 DEFAULT_WIDTH = 1.0
+#: The thesis's basis width (with J = 10): kept by ``--preset thesis`` runs and the synthetic generators.
+THESIS_WIDTH = 2.0
 
 
 def centres(num_basis: int) -> Array:

@@ -31,7 +31,7 @@ from typing import Callable, Sequence
 import numpy as np
 from numpy.typing import ArrayLike
 
-from lmpromp_ppl.basis import design_matrix
+from lmpromp_ppl.basis import THESIS_WIDTH, design_matrix
 from lmpromp_ppl.data.core import Demonstrations
 from lmpromp_ppl.errors import DataError
 
@@ -67,7 +67,7 @@ def _query(params: dict) -> str:
 
 
 #: Basis width of the generators (independent of :data:`lmpromp_ppl.basis.DEFAULT_WIDTH`).
-GENERATOR_WIDTH = 2.0
+GENERATOR_WIDTH = THESIS_WIDTH
 
 
 def _trajectories(phase: np.ndarray, weights: np.ndarray, num_dofs: int, num_basis: int) -> np.ndarray:

@@ -28,7 +28,7 @@ import numpy as np
 from lmpromp_ppl._progress import show_progress_bars
 from lmpromp_ppl.data.core import Demonstrations, ModelData, Scaling, model_data, standardize
 from lmpromp_ppl.errors import ConvergenceWarning, LmprompError
-from lmpromp_ppl.basis import DEFAULT_NUM_BASIS, DEFAULT_WIDTH
+from lmpromp_ppl.basis import DEFAULT_NUM_BASIS, DEFAULT_WIDTH, THESIS_WIDTH
 from lmpromp_ppl.models.hyper import DEFAULT, THESIS, Hyperparameters
 
 __all__ = [
@@ -36,7 +36,6 @@ __all__ = [
     "TOL",
     "VERDICTS",
     "SETTINGS",
-    "THESIS_WIDTH",
     "Settings",
     "Context",
     "Claim",
@@ -60,10 +59,6 @@ MAX_ITER = 1000
 TOL = 1e-6
 #: The verdicts of ``claims.md``.
 VERDICTS = ("holds", "holds partly", "does not hold")
-
-
-#: The thesis's basis width (Gaussian variance / squared centre spacing); its J is 10.
-THESIS_WIDTH = 2.0
 
 
 @dataclass(frozen=True)
