@@ -35,7 +35,8 @@ def test_presets_default_learns_noise_and_thesis_keeps_its_values():
     assert default.learn_beta and default.lambda0 == 1.0
     assert default == thesis.replace(learn_beta=True)
     assert not thesis.learn_beta and thesis.lambda0 == 1.0 and thesis.beta == 100.0
-    assert lp.PROPER.learn_beta and lp.PROPER.lambda0 == default.lambda0
+    # proper: the default's settings with proper Gamma priors and the weak offset prior for sampling
+    assert lp.PROPER == default.replace(a0=1e-2, b0=1e-2, lambda0=1e-2)
 
 
 def test_default_basis_is_well_conditioned_and_the_thesis_basis_is_not():
@@ -126,6 +127,16 @@ def test_real_data_row_meets_every_criterion_on_lasa():
     assert 0.0 < row["halfwidth"] < 1.5 and row["max_abs_w"] < WEIGHT_LIMIT
 
 
+@pytest.mark.slow
+def test_nuts_row_on_lasa_follows_the_demonstrations():
+    """The NUTS rows of reports/real-data/ (proper preset): the mean in b, weights of order one."""
+    options = {"num_chains": 2, "num_warmup": 300, "num_samples": 300}
+    row = dataset_row(GSHAPE, "nuts", max_folds=3, options=options)
+    assert row["passes"]["pop_rmse"] and row["passes"]["cond_rmse_observed"], row
+    assert row["max_abs_w"] < WEIGHT_LIMIT
+    assert not any("carried by M h" in w for w in row["warnings"]), row["warnings"]
+
+
 # ----------------------------------------------------------- degeneracy warnings
 def _clean_point(L=6, d=8, V=2, K=None):
     rng = np.random.default_rng(0)
@@ -168,11 +179,29 @@ def test_h_offset_is_rotation_invariant_over_draws():
     assert any("carried by M h" in x for x in out)
 
 
+def test_h_offset_that_carries_no_movement_is_not_a_warning():
+    # a latent dimension the data do not need (NUTS): h drawn from the prior, a small column of M
+    L, J, V = 7, 8, 3
+    rng = np.random.default_rng(2)
+    h = rng.standard_normal((1, 400, L, V))
+    offset = np.linalg.norm(h.mean(axis=2), axis=-1).mean()
+    assert offset > H_MEAN_LIMIT  # sqrt(V / L) = 0.65 by chance alone
+    point = {"h": h[0].mean(axis=0), "w": np.zeros((L, J))}
+    basis = dict(num_dofs=1, num_basis=J, width=1.0)
+    small = {"h": h, "M": np.full((1, 400, J, V), 0.01)}
+    assert degeneracy_warnings("lmpromp", point=point, draws=small, **basis) == []
+    large = {"h": h, "M": np.ones((1, 400, J, V))}
+    (out,) = degeneracy_warnings("lmpromp", point=point, draws=large, **basis)
+    assert "carried by M h" in out and "moves the mean movement by" in out
+    # without the basis the h offset alone decides
+    assert degeneracy_warnings("lmpromp", point=point, draws=small) != []
+
+
 def test_mixture_copy_and_responsibility_weighted_offset():
     d, J = 6, 6
     b = np.zeros((3, d))
     b[2] += 2.0
-    point = {"b": b, "alpha": np.full(3, 4.0), "M": np.zeros((3, d, 1)), "w": np.zeros((4, d)),
+    point = {"b": b, "alpha": np.full(3, 4.0), "M": np.ones((3, d, 1)), "w": np.zeros((4, d)),
              "h": np.zeros((4, 3, 1))}
     out = degeneracy_warnings("mixture", point=point, num_dofs=1, num_basis=J, resp=np.eye(4, 3), active=[0, 1, 2])
     assert len(out) == 1 and "components 0 and 1 are copies" in out[0]
@@ -211,6 +240,22 @@ def test_real_data_command_writes_the_table(tmp_path, capsys):
     # a bad engine is one line and status 2, and leaves no output behind
     assert main(["real-data", "--engines", "cavi,gibbs", "--out", str(tmp_path / "bad")]) == 2
     assert "unknown engine" in capsys.readouterr().err and not (tmp_path / "bad").exists()
+
+
+def test_coverage_standard_error_is_over_folds_and_shown_in_the_table():
+    from lmpromp_ppl.reports.real_data import coverage_se, markdown_table
+
+    folds = [0.5, 0.9, 1.0, 0.8]
+    row = {"dataset": "x", "engine": "cavi", "num_demos": 4, "pop_rmse": 0.1, "coverage90": float(np.mean(folds)),
+           "halfwidth": 0.3, "cond_rmse_observed": 0.01, "cond_rmse_rest": 0.1, "uncond_rmse_rest": 0.2,
+           "noise_sd": 0.01, "max_abs_w": 2.0, "per_fold": [{"coverage90": c} for c in folds]}
+    from lmpromp_ppl.reports.real_data import passes
+
+    row["passes"] = passes(row)
+    se = np.std(folds, ddof=1) / 2.0
+    assert coverage_se(row) == pytest.approx(se)
+    assert f"0.8 ± {se:.2f}" in markdown_table([row])
+    assert coverage_se({**row, "per_fold": row["per_fold"][:1]}) is None
 
 
 def test_fit_command_says_when_the_fit_is_degenerate(tmp_path, capsys):

@@ -13,7 +13,13 @@ on real recordings (docs/defaults.md):
   carried by a column of ``M``, that column's ARD precision, the movement
   distribution and conditioning through ``h`` are all distorted.  The norm is
   taken per draw (it is invariant to rotations of the latent space) and
-  averaged;
+  averaged.  When ``M`` and the basis are known the warning also needs the
+  movement that offset carries, :math:`\Psi M \bar h` (RMS over phase and DoF,
+  standardised units, per draw and averaged), above :data:`MOVEMENT_LIMIT`:
+  under NUTS a latent dimension the data do not need has a small column of
+  ``M`` and ``h`` drawn from the prior, whose mean over L demonstrations is
+  :math:`\sqrt{V/L}` prior s.d. from 0 by chance (0.65 for V = 3, L = 7) and
+  carries no movement;
 * **weights far beyond the data's scale**: :math:`\max_i \lVert E[w_i]
   \rVert_\infty` above :data:`WEIGHT_LIMIT` in standardised units (data of
   unit spread are fitted by weights of order one with a well-conditioned
@@ -37,28 +43,45 @@ import numpy as np
 
 from lmpromp_ppl.basis import DEFAULT_WIDTH, rbf_basis
 
-__all__ = ["H_MEAN_LIMIT", "WEIGHT_LIMIT", "COPY_DISTANCE", "degeneracy_warnings", "result_warnings"]
+__all__ = ["H_MEAN_LIMIT", "MOVEMENT_LIMIT", "WEIGHT_LIMIT", "COPY_DISTANCE", "degeneracy_warnings", "result_warnings"]
 
 #: Largest mean of E[h_i] (in prior standard deviations) before "mean carried by M h".
 H_MEAN_LIMIT = 0.5
+#: Largest RMS movement (standardised units) that M times the mean of E[h_i] may carry.
+MOVEMENT_LIMIT = 0.1
 #: Largest |E[w]| (standardised units) before "weights far beyond the data's scale".
 WEIGHT_LIMIT = 10.0
 #: Largest RMS distance of two components' mean movements (standardised units) for a copy.
 COPY_DISTANCE = 0.05
 
 
-def _h_offset(h: np.ndarray, gamma: float, resp: np.ndarray | None) -> np.ndarray:
-    """Norm of the mean of h over demonstrations, per sample and component, in prior s.d.
+def _h_mean(h: np.ndarray, resp: np.ndarray | None) -> np.ndarray:
+    """Mean of h over demonstrations, per sample and component: ``h`` (S, L, K, V) -> (S, K, V).
 
-    ``h`` (S, L, K, V); ``resp`` (L, K) weights demonstrations per component.
-    Returns (S, K).
+    ``resp`` (L, K) weights the demonstrations per component.
     """
     if resp is None:
         weights = np.full(h.shape[1:3], 1.0 / h.shape[1])
     else:
         weights = np.asarray(resp, dtype=float) / np.maximum(np.sum(resp, axis=0, keepdims=True), 1e-12)
-    mean = np.einsum("lk,slkv->skv", weights, h)
-    return np.linalg.norm(mean, axis=-1) * np.sqrt(gamma)
+    return np.einsum("lk,slkv->skv", weights, h)
+
+
+def _h_offset(h: np.ndarray, gamma: float, resp: np.ndarray | None) -> np.ndarray:
+    """Norm of the mean of h over demonstrations, per sample and component, in prior s.d.: (S, K)."""
+    return np.linalg.norm(_h_mean(h, resp), axis=-1) * np.sqrt(gamma)
+
+
+def _carried_movement(h, M, resp, num_dofs: int, num_basis: int, width: float) -> np.ndarray:
+    r"""RMS over phase and DoF of :math:`\Psi M \bar h` per sample and component (standardised units): (S, K).
+
+    ``h`` (S, L, K, V) and ``M`` (S, K, d, V) from the same draws (or the posterior mean, S = 1).
+    """
+    offset = np.einsum("skdv,skv->skd", M, _h_mean(h, resp))
+    phi = np.asarray(rbf_basis(np.linspace(0, 1, 50), num_basis, width))
+    S, K = offset.shape[:2]
+    movement = np.einsum("pj,skcj->skpc", phi, offset.reshape(S, K, num_dofs, num_basis))
+    return np.sqrt(np.mean(movement**2, axis=(2, 3)))
 
 
 def degeneracy_warnings(
@@ -85,7 +108,7 @@ def degeneracy_warnings(
     draws : draws with leading (chain, draw) dims, used for the rotation-invariant
         ``h`` offset when present (NUTS, SVI); otherwise ``point["h"]``
     gamma : prior precision of ``h``
-    num_dofs, num_basis, width : the basis, for the mixture's copy check
+    num_dofs, num_basis, width : the basis, for the movement carried by M h and the mixture's copy check
     resp : (L, K) responsibilities of the mixture's demonstrations
     active : indices of the mixture's active components (default: all)
     """
@@ -100,28 +123,40 @@ def degeneracy_warnings(
     if model == "promp":
         return out
     mixture = model == "mixture"
+    h = M = None
     if draws is not None and "h" in draws:
         h = np.asarray(draws["h"], dtype=float)
         h = h.reshape((-1,) + h.shape[2:])  # (S, L, [K,] V)
+        if "M" in draws:
+            M = np.asarray(draws["M"], dtype=float)
+            M = M.reshape((-1,) + M.shape[2:])  # (S, [K,] d, V)
     elif "h" in point:
         h = np.asarray(point["h"], dtype=float)[None]
-    else:
-        h = None
+        if "M" in point:
+            M = np.asarray(point["M"], dtype=float)[None]
     if h is not None:
         if h.ndim == 3:
             h = h[:, :, None, :]
+        if M is not None and M.ndim == 3:
+            M = M[:, None]
         if mixture and resp is None and h.shape[2] > 1:
             h = None  # without responsibilities the per-component mean is undefined
     if h is not None:
-        offset = _h_offset(h, gamma, resp if mixture else None).mean(axis=0)  # (K,)
+        which = resp if mixture else None
+        offset = _h_offset(h, gamma, which).mean(axis=0)  # (K,)
+        movement = None
+        if M is not None and num_dofs and num_basis and M.shape[-2] == num_dofs * num_basis:
+            movement = _carried_movement(h, M, which, num_dofs, num_basis, width).mean(axis=0)
         components = range(offset.shape[0]) if active is None or not mixture else active
         for k in components:
-            if offset[k] > H_MEAN_LIMIT:
+            if offset[k] > H_MEAN_LIMIT and (movement is None or movement[k] > MOVEMENT_LIMIT):
                 where = f" of component {k}" if mixture else ""
+                carried = "" if movement is None else \
+                    f" and M E[h] moves the mean movement by {movement[k]:.2g} data s.d. (limit {MOVEMENT_LIMIT})"
                 out.append(
                     f"mean movement carried by M h{where}: the demonstrations' E[h] average "
-                    f"{offset[k]:.2g} prior s.d. from 0 (limit {H_MEAN_LIMIT}); the offset b should carry it "
-                    f"(a weaker prior on b, smaller lambda0, helps)"
+                    f"{offset[k]:.2g} prior s.d. from 0 (limit {H_MEAN_LIMIT}){carried}; the offset b should "
+                    f"carry it (a weaker prior on b, smaller lambda0, helps)"
                 )
     if "w" in point:
         wmax = float(np.max(np.abs(np.asarray(point["w"]))))

@@ -43,6 +43,7 @@ __all__ = [
     "dataset_row",
     "mixture_rows",
     "passes",
+    "coverage_se",
     "markdown_table",
     "mixture_table",
     "write_report",
@@ -251,6 +252,18 @@ def _fmt(x, digits=3) -> str:
     return str(x)
 
 
+def coverage_se(row: dict) -> float | None:
+    """Standard error of a row's LOO coverage over its folds (None with one fold).
+
+    A held-out demonstration's points are strongly correlated (one smooth
+    curve), so the folds, not the points, are the independent replicates.
+    """
+    values = [f["coverage90"] for f in row.get("per_fold", [])]
+    if len(values) < 2:
+        return None
+    return float(np.std(values, ddof=1) / np.sqrt(len(values)))
+
+
 def markdown_table(rows: Sequence[dict]) -> str:
     """One line per dataset and engine; a failed criterion is marked ✗."""
     head = (
@@ -264,7 +277,8 @@ def markdown_table(rows: Sequence[dict]) -> str:
 
         def cell(name):
             mark = "" if ok.get(name, True) else " ✗"
-            return _fmt(r[name]) + mark
+            se = coverage_se(r) if name == "coverage90" else None
+            return _fmt(r[name]) + ("" if se is None else f" ± {se:.2f}") + mark
 
         lines.append(
             f"| `{r['dataset']}` | {r['engine']} | {r['num_demos']} | {cell('pop_rmse')} | {cell('coverage90')} | "
@@ -350,6 +364,8 @@ def write_report(out, rows: Sequence[dict], mixture: Sequence[dict], *, command:
         for name in CRITERIA:
             ok = sum(r["passes"][name] for r in sub)
             summary.append(f"| {engine} | `{name}` {CRITERIA[name]} | {ok} / {len(sub)} |")
+        summary.append(f"| {engine} | mean LOO coverage over datasets (nominal 0.90) | "
+                       f"{np.mean([r['coverage90'] for r in sub]):.3f} |")
     text = [
         "# Default settings on real demonstrations",
         "",
@@ -359,7 +375,7 @@ def write_report(out, rows: Sequence[dict], mixture: Sequence[dict], *, command:
         "DoF), from the default settings of each engine (`lmpromp_ppl.fit` without options).  `pop RMSE`:",
         "population predictive mean against the pointwise mean of the demonstrations.  `LOO cov. 90 %`:",
         "leave-one-demonstration-out coverage of the held-out points by the central 90 % band including",
-        "observation noise; `half-width` is that band's half-width.  `cond. RMSE`: default `predict` on the",
+        "observation noise, ± its standard error over the folds; `half-width` is that band's half-width.  `cond. RMSE`: default `predict` on the",
         "first third of the held-out demonstration, RMSE on the observed third and on the remaining two thirds",
         "(`uncond.`: the population mean instead).  `noise s.d.`: the fitted observation noise.  `max abs(w)`:",
         "the largest posterior-mean weight (standardised units).  ✗ marks a failed criterion.",
