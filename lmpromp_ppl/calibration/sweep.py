@@ -116,7 +116,8 @@ def heldout_scores(point: Mapping[str, Any], data, hyper, num_dofs: int) -> dict
     from lmpromp_ppl.predict import GaussianMixture, Observation, condition_gaussian, score_heldout
 
     b = np.asarray(point["b"])
-    weight_cov = np.eye(b.shape[0]) / float(point["alpha"]) + np.asarray(point["M"]) @ np.asarray(point["M"]).T / hyper.gamma
+    M = np.asarray(point["M"])
+    weight_cov = np.eye(b.shape[0]) / float(point["alpha"]) + M @ M.T / hyper.gamma
     noise_var = 1.0 / (float(point["beta"]) if "beta" in point else float(hyper.beta))
 
     def rows(psi, y, keep):

@@ -77,11 +77,14 @@ def _carried_movement(h, M, resp, num_dofs: int, num_basis: int, width: float) -
 
     ``h`` (S, L, K, V) and ``M`` (S, K, d, V) from the same draws (or the posterior mean, S = 1).
     """
-    offset = np.einsum("skdv,skv->skd", M, _h_mean(h, resp))
+    movement = _movements(np.einsum("skdv,skv->skd", M, _h_mean(h, resp)), num_dofs, num_basis, width)
+    return np.sqrt(np.mean(movement**2, axis=(-2, -1)))
+
+
+def _movements(weights: np.ndarray, num_dofs: int, num_basis: int, width: float) -> np.ndarray:
+    r"""Movements :math:`\Psi v` of weight vectors on 50 phases: ``weights`` (..., d) -> (..., 50, D)."""
     phi = np.asarray(rbf_basis(np.linspace(0, 1, 50), num_basis, width))
-    S, K = offset.shape[:2]
-    movement = np.einsum("pj,skcj->skpc", phi, offset.reshape(S, K, num_dofs, num_basis))
-    return np.sqrt(np.mean(movement**2, axis=(2, 3)))
+    return np.einsum("pj,...cj->...pc", phi, weights.reshape(weights.shape[:-1] + (num_dofs, num_basis)))
 
 
 def degeneracy_warnings(
@@ -183,8 +186,7 @@ def _copies(point, active, num_dofs, num_basis, width, gamma) -> list[str]:
         return []
     K = b.shape[0]
     active = list(range(K)) if active is None else list(active)
-    phi = np.asarray(rbf_basis(np.linspace(0, 1, 50), num_basis, width))
-    means = np.einsum("pj,kdj->kpd", phi, b.reshape(K, num_dofs, num_basis))
+    means = _movements(b, num_dofs, num_basis, width)
     alpha = np.asarray(point["alpha"], dtype=float).reshape(K)
     spread = 1.0 / alpha
     if "M" in point:

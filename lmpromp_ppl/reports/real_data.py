@@ -49,6 +49,9 @@ __all__ = [
     "write_report",
 ]
 
+#: Half-width of the central 90 % band of a standard normal.
+_Z90 = 1.6448536269514722
+
 #: Pooled LASA shape sets for the mixture check.
 POOLED_LASA = (
     "lasa:GShape+Angle+Sshape?every=20",
@@ -137,13 +140,13 @@ def _fold(fitter: Fitter, demos, held: int, seed: int) -> FoldResult:
     scale = np.asarray(result.scaling.scale, dtype=float)
     z, y = demos.phases()[held], demos.positions[held]
     pop = population_prediction(result, query=z, num_samples=1)
-    inside = np.abs(y - pop.mean) <= 1.6448536269514722 * pop.sd_obs
+    inside = np.abs(y - pop.mean) <= _Z90 * pop.sd_obs
     third = max(1, z.shape[0] // 3)
     cond = predict_from_fit(result, z[:third], y[:third], query=z, num_samples=1)
     noise = float(np.sqrt(np.mean((pop.noise_sd / scale) ** 2)))
     return FoldResult(
         coverage90=float(np.mean(inside)),
-        halfwidth=float(np.sqrt(np.mean(np.mean(1.6448536269514722 * pop.sd_obs, axis=0) ** 2 / scale**2))),
+        halfwidth=float(np.sqrt(np.mean(np.mean(_Z90 * pop.sd_obs, axis=0) ** 2 / scale**2))),
         cond_rmse_observed=_rms_over_dofs(cond.mean[:third] - y[:third], scale),
         cond_rmse_rest=_rms_over_dofs(cond.mean[third:] - y[third:], scale),
         uncond_rmse_rest=_rms_over_dofs(pop.mean[third:] - y[third:], scale),
@@ -337,7 +340,7 @@ def overview_figure(datasets: Sequence[str], path, *, seed: int = 0) -> None:
         else:
             for z, y in zip(demos.phases(), demos.positions):
                 ax.plot(z, y[:, 0], color="0.6", lw=0.6)
-            half = 1.6448536269514722 * pop.sd_obs[:, 0]
+            half = _Z90 * pop.sd_obs[:, 0]
             ax.fill_between(pop.phase, pop.mean[:, 0] - half, pop.mean[:, 0] + half, color="tab:blue", alpha=0.2,
                             label="90 % band (with noise)")
             ax.plot(pop.phase, pop.mean[:, 0], color="tab:blue", lw=2, label="predictive mean")
