@@ -39,6 +39,7 @@ def _one_error_line(err: str) -> str:
         (["fit", DATASET, "--beta", "0"], "--beta"),
         (["fit", DATASET, "--learning-rate", "-0.1"], "--learning-rate"),
         (["fit", DATASET, "--num-basis", "1"], "--num-basis"),
+        (["fit", DATASET, "--num-basis", "many"], "--num-basis"),
         (["fit", DATASET, "--latent-dim", "0"], "--latent-dim"),
         (["fit", DATASET, "--warmup", "-5"], "--warmup"),
         (["fit", DATASET, "--seed", "-1"], "--seed"),

@@ -143,6 +143,17 @@ def test_mixture_finds_pooled_lasa_shapes_in_nine_of_ten_seeds(dataset):
     assert ok >= 9, [(r["active_components"], r["ari"]) for r in rows]
 
 
+@pytest.mark.slow
+@pytest.mark.filterwarnings("ignore::lmpromp_ppl.errors.ConvergenceWarning")
+def test_mixture_finds_synthetic_clusters_in_nine_of_ten_seeds():
+    """The issue's criterion on synthetic:clusters with the mixture's default basis (chosen by the bound)."""
+    from lmpromp_ppl.reports.real_data import mixture_rows
+
+    rows = mixture_rows(["synthetic:clusters"], seeds=range(10))
+    ok = sum(r["active_components"] == 4 and r["ari"] >= 0.95 for r in rows)
+    assert ok >= 9, [(r["num_basis"], r["active_components"], r["ari"]) for r in rows]
+
+
 @pytest.mark.filterwarnings("ignore::lmpromp_ppl.errors.ConvergenceWarning")
 def test_search_option_and_unlabelled_data():
     hyper = Hyperparameters(latent_dim=2, num_components=3)

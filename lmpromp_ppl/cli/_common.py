@@ -25,7 +25,7 @@ import typer
 from lmpromp_ppl.errors import ConvergenceWarning, LmprompError
 
 __all__ = [
-    "SEED_MAX", "SEED_HELP", "positive", "open_fraction", "prepare_out_dir", "prepare_out_file",
+    "SEED_MAX", "SEED_HELP", "positive", "open_fraction", "basis_size", "prepare_out_dir", "prepare_out_file",
     "make_dirs", "remove_created_dirs", "start_recording", "stop_recording", "caught_convergence_warnings",
 ]
 
@@ -49,6 +49,19 @@ def _float_check(requirement: str, accept):
 positive = _float_check("a positive number", lambda x: x > 0)
 #: ``callback=`` of a float option that must lie strictly between 0 and 1.
 open_fraction = _float_check("strictly between 0 and 1", lambda x: 0 < x < 1)
+
+
+def basis_size(value: str | None):
+    """``callback=`` of ``--num-basis``: an integer >= 2, or ``auto`` (chosen by the bound)."""
+    if value is None or value == "auto":
+        return value
+    try:
+        number = int(value)
+    except ValueError:
+        raise typer.BadParameter(f"must be an integer >= 2 or 'auto', got {value!r}") from None
+    if number < 2:
+        raise typer.BadParameter(f"must be an integer >= 2 or 'auto', got {value!r}")
+    return number
 
 
 # --------------------------------------------------------------------------- output targets

@@ -9,7 +9,9 @@ import typer
 
 from lmpromp_ppl.basis import DEFAULT_NUM_BASIS, DEFAULT_WIDTH
 from lmpromp_ppl.cli import app
-from lmpromp_ppl.cli._common import SEED_HELP, SEED_MAX, caught_convergence_warnings, positive, prepare_out_dir
+from lmpromp_ppl.cli._common import (
+    SEED_HELP, SEED_MAX, basis_size, caught_convergence_warnings, positive, prepare_out_dir,
+)
 
 __all__ = ["convergence_note", "fit_command", "hyper_from_options"]
 
@@ -73,7 +75,11 @@ def fit_command(
     engine: str = typer.Option("cavi", help="cavi, nuts, svi_meanfield, svi_autonormal or svi_lowrank."),
     latent_dim: Optional[int] = typer.Option(None, "--latent-dim", "-V", min=1, help="Latent dimension V."),
     components: Optional[int] = typer.Option(None, "--components", "-K", min=1, help="Mixture components K."),
-    num_basis: int = typer.Option(DEFAULT_NUM_BASIS, "--num-basis", "-J", min=2, help="Basis functions per DoF."),
+    num_basis: Optional[str] = typer.Option(
+        None, "--num-basis", "-J", callback=basis_size,
+        help=f"Basis functions per DoF, or 'auto': the J with the highest CAVI bound (docs/defaults.md). "
+             f"Default: auto for the mixture, {DEFAULT_NUM_BASIS} otherwise.",
+    ),
     width: float = typer.Option(DEFAULT_WIDTH, "--width", callback=positive, help="Basis width (Gaussian variance in squared centre spacings; the thesis uses 2)."),
     preset_name: Optional[str] = typer.Option(None, "--preset", help="Hyperparameter preset: default, thesis or proper (default: default for CAVI, proper otherwise)."),
     beta: Optional[float] = typer.Option(None, callback=positive, help="Fix the observation precision beta (standardised units)."),
@@ -114,7 +120,8 @@ def fit_command(
         ari = f", ARI {s['ari']:.3f}" if s.get("ari") is not None else ""
         note = convergence_note(result, messages)
         note = f"; {note}" if note else ""
-        typer.echo(f"{model}/{engine} on {dataset}: {s['seconds']:.3g} s{elbo}{ari}{note}; wrote {out_dir}")
+        chosen = f", J = {result.num_basis} (by the bound)" if "num_basis_selection" in s else ""
+        typer.echo(f"{model}/{engine} on {dataset}: {s['seconds']:.3g} s{elbo}{ari}{chosen}{note}; wrote {out_dir}")
         for warning in s.get("warnings", []):
             if not warning.startswith("not converged"):  # said in the result line
                 typer.echo(f"warning: {warning}")

@@ -90,7 +90,7 @@ def real_data_command(
             on_row=lambda r: echo(f"mixture {r['dataset']} seed {r['seed']}: {r['active_components']} active, "
                                   f"ARI {r['ari'] if r['ari'] is None else round(r['ari'], 3)}"),
         )
-    parts = ["lmpromp real-data", f"--out {out}", f"--engines {engines}", f"--max-folds {max_folds}",
+    parts = ["lmpromp real-data", f"--out {out}", f"--engines {engines or repr('')}", f"--max-folds {max_folds}",
              f"--mixture-seeds {mixture_seeds}", f"--seed {seed}"]
     if datasets:
         parts.append(f"--datasets '{datasets}'")
