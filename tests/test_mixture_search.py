@@ -124,7 +124,8 @@ def test_search_recovers_pooled_lasa_shapes():
 _MERGED_BY_THE_BOUND = pytest.mark.xfail(
     strict=True,
     reason="the bound of two shapes on one component exceeds the bound started from the four shapes "
-           "(7073.0 > 7064.5, docs/defaults.md): a model limitation, not the search's",
+           "(7073.0 > 7064.5 at J = 20, the bound's choice with V = 2; 7212.1 > 7189.6 at J = 25; docs/defaults.md): "
+           "a model limitation, not the search's",
 )
 
 
