@@ -152,3 +152,28 @@ def test_compare_with_svi_guides_and_numpyro_khat_cross_check(tmp_path):
         assert e["psis_khat"] is not None and e["psis_khat_numpyro"] is not None
         # same particles (same key): arviz-stats' and numpyro's generalized Pareto fits agree
         assert e["psis_khat"] == pytest.approx(e["psis_khat_numpyro"], abs=0.05)
+
+
+def test_the_mixture_chooses_its_basis_once_before_any_fit(monkeypatch, tmp_path):
+    """compare with the mixture (or --num-basis auto) asks the bound for J once, before any engine runs."""
+    import lmpromp_ppl.api as api
+    from lmpromp_ppl.reports.compare import compare
+
+    class Chosen(Exception):
+        pass
+
+    calls = []
+
+    def choose(data, **options):
+        calls.append(data)
+        raise Chosen
+
+    monkeypatch.setattr(api, "select_num_basis", choose)
+    for model, options in (("mixture", {}), ("lmpromp", {"num_basis": "auto"})):
+        with pytest.raises(Chosen):
+            compare(DATASET, model, "cavi,nuts", out_dir=tmp_path / model, **options)
+        assert not (tmp_path / model).exists()
+    assert calls == [DATASET, DATASET]
+    with pytest.raises(lmpromp_ppl.errors.LmprompError, match="'auto'"):
+        compare(DATASET, "lmpromp", "cavi,nuts", out_dir=tmp_path / "bad", num_basis="many")
+    assert main(["compare", DATASET, "--num-basis", "many", "--out", str(tmp_path / "cli")]) == 2

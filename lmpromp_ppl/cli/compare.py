@@ -9,7 +9,7 @@ import typer
 
 from lmpromp_ppl.basis import DEFAULT_NUM_BASIS
 from lmpromp_ppl.cli import app
-from lmpromp_ppl.cli._common import SEED_HELP, SEED_MAX
+from lmpromp_ppl.cli._common import SEED_HELP, SEED_MAX, basis_size
 
 __all__ = ["compare_command"]
 
@@ -22,7 +22,11 @@ def compare_command(
     engines: str = typer.Option("cavi,svi,nuts", help="Comma-separated engines; 'svi' means all three SVI guides; nuts is required (the reference)."),
     latent_dim: Optional[int] = typer.Option(None, "--latent-dim", "-V", min=1, help="Latent dimension V."),
     components: Optional[int] = typer.Option(None, "--components", "-K", min=1, help="Mixture components K."),
-    num_basis: int = typer.Option(DEFAULT_NUM_BASIS, "--num-basis", "-J", min=2, help="Basis functions per DoF."),
+    num_basis: Optional[str] = typer.Option(
+        None, "--num-basis", "-J", callback=basis_size,
+        help=f"Basis functions per DoF, or 'auto' (chosen once by the CAVI bound, shared by every engine). "
+             f"Default: auto for the mixture, {DEFAULT_NUM_BASIS} otherwise.",
+    ),
     preset_name: str = typer.Option("proper", "--preset", help="Hyperparameter preset shared by every engine."),
     chains: Optional[int] = typer.Option(None, min=1, help="NUTS: chains."),
     warmup: Optional[int] = typer.Option(None, min=0, help="NUTS: warm-up iterations per chain."),

@@ -201,7 +201,7 @@ def compare(
     out_dir: str | Path,
     latent_dim: int | None = None,
     num_components: int | None = None,
-    num_basis: int = DEFAULT_NUM_BASIS,
+    num_basis: int | str | None = None,
     preset_name: str = "proper",
     num_chains: int | None = None,
     num_warmup: int | None = None,
@@ -222,7 +222,9 @@ def compare(
     engines : comma-separated names or a list; ``svi`` means every SVI guide; must include ``nuts``
     out_dir : output directory (refused when it exists and is not empty, unless ``force``)
     latent_dim, num_components : override the preset's V and K
-    num_basis : basis functions per DoF (J)
+    num_basis : basis functions per DoF (J), or ``"auto"``: chosen once by the
+        bound (:func:`lmpromp_ppl.select_num_basis`) and shared by every engine;
+        default ``"auto"`` for the mixture, ``DEFAULT_NUM_BASIS`` otherwise (as :func:`lmpromp_ppl.fit`)
     preset_name : hyperparameter preset shared by every engine (default ``proper``)
     num_chains, num_warmup, num_samples : NUTS settings (engine defaults when None)
     svi_steps : maximum SVI steps (engine default when None)
@@ -254,13 +256,24 @@ def compare(
     if num_components is not None:
         changes["num_components"] = num_components
     hyper = preset(preset_name, **changes)
-    spec, raw, _, _, mdata = prepare(dataset, num_basis)
-    hyper.validate_for(mdata.num_weights, mdata.num_demos)
-    out = prepare_out_dir(Path(out_dir), force)
 
     def say(msg: str) -> None:
         if progress:
             print(f"lmpromp compare: {msg}", file=sys.stderr, flush=True)
+
+    if num_basis is None:
+        num_basis = "auto" if model == "mixture" else DEFAULT_NUM_BASIS
+    if isinstance(num_basis, str) and num_basis != "auto":
+        raise LmprompError(f"num_basis must be an integer >= 2 or 'auto', got {num_basis!r}")
+    if num_basis == "auto":
+        from lmpromp_ppl.api import select_num_basis
+
+        say("choosing the number of basis functions by the bound ...")
+        num_basis = select_num_basis(dataset, hyper=hyper, seed=seed)["num_basis"]
+        say(f"J = {num_basis}")
+    spec, raw, _, _, mdata = prepare(dataset, num_basis)
+    hyper.validate_for(mdata.num_weights, mdata.num_demos)
+    out = prepare_out_dir(Path(out_dir), force)
 
     results, engine_warnings = {}, {}
     for i, name in enumerate(names):
