@@ -20,7 +20,7 @@ from lmpromp_ppl.results import FitResult
 
 __all__ = [
     "MODELS", "ENGINES", "ENGINE_OPTIONS", "MIXTURE_OPTIONS", "AUTO_NUM_BASIS",
-    "fit", "select_num_basis", "prepare", "observed_arrays", "adjusted_rand_index",
+    "fit", "select_num_basis", "resolve_num_basis", "prepare", "observed_arrays", "adjusted_rand_index",
 ]
 
 MODELS = ("promp", "lmpromp", "mixture")
@@ -60,16 +60,30 @@ def observed_arrays(demos: Demonstrations) -> dict[str, np.ndarray]:
     return {"t": t, "y": y}
 
 
-def prepare(data: Demonstrations | str, num_basis: int, *, standardise: bool = True, width: float = DEFAULT_WIDTH):
-    """Load (if a dataset string), standardise and build model inputs."""
+def _load(data: Demonstrations | str) -> tuple[str, Demonstrations]:
+    """The dataset string (or the demonstrations' name) and the demonstrations."""
     if isinstance(data, str):
         from lmpromp_ppl.data import load_dataset
 
-        spec, data = data, load_dataset(data)
-    else:
-        spec = data.name
+        return data, load_dataset(data)
     if not isinstance(data, Demonstrations):
         raise LmprompError(f"data must be Demonstrations or a dataset string, got {type(data).__name__}")
+    return data.name, data
+
+
+def resolve_num_basis(num_basis: int | str | None, model: str) -> int | str:
+    """``num_basis`` as given, or its default for ``model``: ``"auto"`` for the mixture,
+    :data:`~lmpromp_ppl.basis.DEFAULT_NUM_BASIS` otherwise (docs/defaults.md, *Choosing J by the bound*)."""
+    if num_basis is None:
+        return "auto" if model == "mixture" else DEFAULT_NUM_BASIS
+    if isinstance(num_basis, str) and num_basis != "auto":
+        raise LmprompError(f"num_basis must be an integer >= 2 or 'auto', got {num_basis!r}")
+    return num_basis
+
+
+def prepare(data: Demonstrations | str, num_basis: int, *, standardise: bool = True, width: float = DEFAULT_WIDTH):
+    """Load (if a dataset string), standardise and build model inputs."""
+    spec, data = _load(data)
     if num_basis < 2:
         raise LmprompError(f"num_basis must be at least 2, got {num_basis}")
     if not width > 0:
@@ -134,11 +148,8 @@ def fit(
         raise LmprompError(f"engine {engine} does not take option(s) {', '.join(unknown)}; it takes {', '.join(sorted(allowed))}")
     if hyper is None:
         hyper = preset("default" if engine == "cavi" else "proper")
-    if num_basis is None:
-        num_basis = "auto" if model == "mixture" else DEFAULT_NUM_BASIS
-    if isinstance(num_basis, str):
-        if num_basis != "auto":
-            raise LmprompError(f"num_basis must be an integer >= 2 or 'auto', got {num_basis!r}")
+    num_basis = resolve_num_basis(num_basis, model)
+    if num_basis == "auto":
         _check_mixture_options(model, options)
         return _fit_auto_basis(data, model, engine, hyper, width=width, seed=seed, standardise=standardise,
                                progress=progress, options=options)
@@ -202,12 +213,7 @@ def select_num_basis(
     import warnings
 
     start = time.perf_counter()
-    if isinstance(data, str):
-        from lmpromp_ppl.data import load_dataset
-
-        data = load_dataset(data)
-    if not isinstance(data, Demonstrations):
-        raise LmprompError(f"data must be Demonstrations or a dataset string, got {type(data).__name__}")
+    _, data = _load(data)
     base = (preset("default") if hyper is None else hyper).replace(num_components=1)
     shortest = int(np.min(data.lengths))
     sizes = sorted({int(J) for J in grid if int(J) >= 2 and int(J) <= shortest and data.num_dofs * int(J) >= base.latent_dim})
@@ -228,11 +234,7 @@ def select_num_basis(
 
 def _fit_auto_basis(data, model, engine, hyper, *, width, seed, standardise, progress, options) -> FitResult:
     """``fit(..., num_basis="auto")``: :func:`select_num_basis`, then the requested fit at the chosen J."""
-    spec = data if isinstance(data, str) else None
-    if isinstance(data, str):
-        from lmpromp_ppl.data import load_dataset
-
-        data = load_dataset(data)
+    spec, data = _load(data)
     if model == "mixture" and data.num_demos < hyper.num_components:
         raise LmprompError(f"fewer demonstrations (L={data.num_demos}) than mixture components (K={hyper.num_components})")
     choice = select_num_basis(data, grid=AUTO_NUM_BASIS, hyper=hyper, width=width, seed=seed, standardise=standardise)
@@ -240,8 +242,7 @@ def _fit_auto_basis(data, model, engine, hyper, *, width, seed, standardise, pro
     same = model == "lmpromp" and engine == "cavi" and not options and hyper.num_components == 1
     result = choice["result"] if same else fit(data, model, engine, hyper, num_basis=J, width=width, seed=seed,
                                                 standardise=standardise, progress=progress, **options)
-    if spec is not None:
-        result.dataset = spec
+    result.dataset = spec
     result.summary["num_basis_selection"] = {key: choice[key] for key in ("num_basis", "grid", "elbo", "seconds")}
     return result
 

@@ -35,7 +35,6 @@ from typing import Sequence
 
 import numpy as np
 
-from lmpromp_ppl.basis import DEFAULT_NUM_BASIS
 from lmpromp_ppl.errors import ConvergenceWarning, LmprompError
 
 __all__ = ["QUANTITIES", "EXTRA_QUANTITIES", "expand_engines", "compute_metrics", "compare"]
@@ -239,7 +238,7 @@ def compare(
     dict
         The content of ``metrics.json``.
     """
-    from lmpromp_ppl.api import MODELS, fit, prepare
+    from lmpromp_ppl.api import MODELS, fit, prepare, resolve_num_basis, select_num_basis
     from lmpromp_ppl.cli._common import prepare_out_dir
     from lmpromp_ppl.models.hyper import preset
     from lmpromp_ppl.reports.report import write_report
@@ -261,13 +260,8 @@ def compare(
         if progress:
             print(f"lmpromp compare: {msg}", file=sys.stderr, flush=True)
 
-    if num_basis is None:
-        num_basis = "auto" if model == "mixture" else DEFAULT_NUM_BASIS
-    if isinstance(num_basis, str) and num_basis != "auto":
-        raise LmprompError(f"num_basis must be an integer >= 2 or 'auto', got {num_basis!r}")
+    num_basis = resolve_num_basis(num_basis, model)
     if num_basis == "auto":
-        from lmpromp_ppl.api import select_num_basis
-
         say("choosing the number of basis functions by the bound ...")
         num_basis = select_num_basis(dataset, hyper=hyper, seed=seed)["num_basis"]
         say(f"J = {num_basis}")

@@ -217,16 +217,15 @@ def mixture_rows(
 
     V = 2 by default: on every pooled LASA set the bound of the types' partition is
     higher with V = 2 than with the single-type default V = 3 (docs/defaults.md).
-    The basis is chosen by the bound per seed (``num_basis="auto"``): each
+    The basis is chosen by the bound (``num_basis="auto"``, once per dataset: the
+    selection does not depend on the seed): each
     extra component pays an Occam factor that grows with the number of weights,
     and a basis finer than the data need hides the types (docs/defaults.md,
     *Choosing J by the bound*).
     """
-    from lmpromp_ppl.api import fit
+    from lmpromp_ppl.api import fit, select_num_basis
     from lmpromp_ppl.data import load_dataset
     from lmpromp_ppl.models.hyper import preset
-
-    from lmpromp_ppl.api import select_num_basis
 
     rows = []
     hyper = preset("default", num_components=num_components, latent_dim=latent_dim)
@@ -235,9 +234,8 @@ def mixture_rows(
         num_types = len(set(np.asarray(demos.labels).tolist())) if demos.labels is not None else None
         J = num_basis
         if J == "auto":
-            # what fit(..., num_basis="auto") does for every seed: the single-type
-            # CAVI fits of the selection start deterministically (no restarts), so
-            # their choice does not depend on the seed and is made once here
+            # what fit(..., num_basis="auto") does for every seed: the selection's
+            # single-type CAVI fits start deterministically (no restarts)
             J = select_num_basis(demos, hyper=hyper)["num_basis"]
         for seed in seeds:
             start = time.perf_counter()
