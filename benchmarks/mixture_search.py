@@ -47,26 +47,17 @@ def oracle_elbo(spec: str, hyper, num_basis: int) -> float:
     """Final bound of plain CAVI started at the labels (one component per label)."""
     from lmpromp_ppl.api import prepare
     from lmpromp_ppl.inference import cavi
-    from lmpromp_ppl.inference import mixture_search as ms
-    from lmpromp_ppl.inference.init import init_mixture_state
+    from lmpromp_ppl.inference.cavi import search
 
-    cm = cavi._mixture
-    _, raw, _, _, mdata = prepare(spec, num_basis)
-    data = cavi.prepare_cavi_data(mdata)
-    hyper_arr = cm.mixture_hyper_arrays(hyper)
+    prepared = prepare(spec, num_basis)
+    raw, data = prepared.raw, cavi.prepare_cavi_data(prepared.model_data)
+    hyper_arr = cavi.hyper_arrays(hyper)
     _, codes = np.unique(raw.labels, return_inverse=True)
-    K = hyper.num_components
-    if codes.max() >= K:
+    if codes.max() >= hyper.num_components:
         return float("nan")
-    start = init_mixture_state(data, hyper, jax.random.key(0))
-    resp = np.eye(K)[codes]
-    active = np.zeros(K, bool)
-    active[: codes.max() + 1] = True
-    fresh = {k: ms._fresh_component(start, hyper_arr, k, resp[:, k], np.asarray(start.M_mean[k]))
-             for k in range(codes.max() + 1)}
-    state = ms._with_components(start, hyper_arr, resp, active, fresh)
-    _, trace, _, _ = cavi._run_one(state, data, hyper_arr, 1e-8, 3000, False, "", step_fn=cm.step)
-    return float(trace[-1])
+    start = cavi.init_mixture_state(data, hyper, jax.random.key(0))
+    state = search.state_from_labels(start, hyper_arr, codes)
+    return float(cavi.run(state, data, hyper_arr, 1e-8, 3000).elbo_trace[-1])
 
 
 def main() -> None:

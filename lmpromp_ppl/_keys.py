@@ -9,7 +9,7 @@ purpose tag, so that two seeds give different draws and one seed the same.
 
 from __future__ import annotations
 
-__all__ = ["DRAWS", "POSTERIOR_PREDICTIVE", "PREDICTION", "seed_key"]
+__all__ = ["DRAWS", "POSTERIOR_PREDICTIVE", "PREDICTION", "seed_key", "raw_key"]
 
 #: Purpose tags folded into the seed's key (distinct, so the streams are independent).
 DRAWS = 1
@@ -22,3 +22,13 @@ def seed_key(seed: int | None, purpose: int):
     import jax
 
     return jax.random.fold_in(jax.random.key(0 if seed is None else int(seed)), purpose)
+
+
+def raw_key(key):
+    """A raw uint32 key from either a typed (``jax.random.key``) or raw key (NumPyro's samplers take raw keys)."""
+    import jax
+    import jax.numpy as jnp
+
+    if jnp.issubdtype(key.dtype, jax.dtypes.prng_key):
+        return jax.random.key_data(key)
+    return key

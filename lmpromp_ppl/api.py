@@ -12,30 +12,19 @@ import jax
 import numpy as np
 
 from lmpromp_ppl.basis import DEFAULT_NUM_BASIS, DEFAULT_WIDTH
-from lmpromp_ppl.data.core import Demonstrations, model_data, standardize
+from lmpromp_ppl.data.core import Demonstrations
+from lmpromp_ppl.data.prepared import PreparedDataset, prepare_dataset
 from lmpromp_ppl.diagnostics.degeneracy import result_warnings
 from lmpromp_ppl.errors import LmprompError
+from lmpromp_ppl.inference.registry import ENGINE_OPTIONS, ENGINES, MIXTURE_OPTIONS, check_fit, guide_of
 from lmpromp_ppl.models.hyper import Hyperparameters, preset
+from lmpromp_ppl.models.registry import MODEL_NAMES as MODELS
 from lmpromp_ppl.results import FitResult
 
 __all__ = [
     "MODELS", "ENGINES", "ENGINE_OPTIONS", "MIXTURE_OPTIONS", "AUTO_NUM_BASIS",
     "fit", "select_num_basis", "resolve_num_basis", "prepare", "observed_arrays", "adjusted_rand_index",
 ]
-
-MODELS = ("promp", "lmpromp", "mixture")
-ENGINES = ("cavi", "svi_meanfield", "svi_autonormal", "svi_lowrank", "nuts")
-
-#: CAVI options of the mixture only: the split-and-merge search (:mod:`lmpromp_ppl.inference.mixture_search`).
-MIXTURE_OPTIONS = {"search", "max_moves"}
-
-#: Options each engine accepts through ``fit(..., **options)``.
-ENGINE_OPTIONS = {
-    "cavi": {"tol", "max_iter", "num_restarts", "family", "search", "max_moves"},
-    "nuts": {"num_chains", "num_warmup", "num_samples", "target_accept", "max_tree_depth", "collapsed", "dense_mass"},
-    "svi": {"num_steps", "learning_rate", "learning_rate_decay", "num_particles", "rank", "stop_tol", "window",
-            "plateau_reductions", "plateau_factor"},
-}
 
 
 #: Basis sizes J that ``num_basis="auto"`` compares by the bound (docs/defaults.md, *Choosing J by the bound*).
@@ -60,17 +49,6 @@ def observed_arrays(demos: Demonstrations) -> dict[str, np.ndarray]:
     return {"t": t, "y": y}
 
 
-def _load(data: Demonstrations | str) -> tuple[str, Demonstrations]:
-    """The dataset string (or the demonstrations' name) and the demonstrations."""
-    if isinstance(data, str):
-        from lmpromp_ppl.data import load_dataset
-
-        return data, load_dataset(data)
-    if not isinstance(data, Demonstrations):
-        raise LmprompError(f"data must be Demonstrations or a dataset string, got {type(data).__name__}")
-    return data.name, data
-
-
 def resolve_num_basis(num_basis: int | str | None, model: str) -> int | str:
     """``num_basis`` as given, or its default for ``model``: ``"auto"`` for the mixture,
     :data:`~lmpromp_ppl.basis.DEFAULT_NUM_BASIS` otherwise (docs/defaults.md, *Choosing J by the bound*)."""
@@ -81,24 +59,15 @@ def resolve_num_basis(num_basis: int | str | None, model: str) -> int | str:
     return num_basis
 
 
-def prepare(data: Demonstrations | str, num_basis: int, *, standardise: bool = True, width: float = DEFAULT_WIDTH):
-    """Load (if a dataset string), standardise and build model inputs."""
-    spec, data = _load(data)
-    if num_basis < 2:
-        raise LmprompError(f"num_basis must be at least 2, got {num_basis}")
-    if not width > 0:
-        raise LmprompError(f"the basis width must be positive, got {width}")
-    if standardise:
-        scaled, scaling = standardize(data)
-    else:
-        from lmpromp_ppl.data.core import Scaling
-
-        scaled, scaling = data, Scaling.identity(data.num_dofs)
-    return spec, data, scaled, scaling, model_data(scaled, num_basis, width)
+def prepare(data: Demonstrations | str, num_basis: int, *, standardise: bool = True,
+            width: float = DEFAULT_WIDTH) -> PreparedDataset:
+    """Load (if a dataset string), standardise and build model inputs once
+    (:func:`lmpromp_ppl.data.prepare_dataset`); pass the result to :func:`fit` and the diagnostics."""
+    return prepare_dataset(data, num_basis, standardise=standardise, width=width)
 
 
 def fit(
-    data: Demonstrations | str,
+    data: Demonstrations | str | PreparedDataset,
     model: str = "lmpromp",
     engine: str = "cavi",
     hyper: Hyperparameters | None = None,
@@ -114,7 +83,9 @@ def fit(
 
     Parameters
     ----------
-    data : Demonstrations or a dataset string (``"lasa:GShape"``, ``"gunpoint"``, a file path)
+    data : Demonstrations, a dataset string (``"lasa:GShape"``, ``"gunpoint"``, a file path), or a
+        :class:`~lmpromp_ppl.data.PreparedDataset` (:func:`prepare`) whose model inputs are used as
+        they are (``num_basis``, ``width`` and ``standardise`` must then be left at their defaults)
     model : ``"promp"``, ``"lmpromp"`` or ``"mixture"``
     engine : ``"cavi"``, ``"nuts"``, ``"svi_meanfield"``, ``"svi_autonormal"`` or ``"svi_lowrank"``
     hyper : hyperparameters; default: the ``default`` preset for CAVI, the
@@ -136,24 +107,25 @@ def fit(
     For the mixture with CAVI, ``summary["ari"]`` is the adjusted Rand index of the
     MAP responsibilities against the data's labels, when the demonstrations carry labels.
     """
-    if model not in MODELS:
-        raise LmprompError(f"unknown model {model!r}; choose from {', '.join(MODELS)}")
-    if engine not in ENGINES:
-        raise LmprompError(f"unknown engine {engine!r}; choose from {', '.join(ENGINES)}")
-    if engine == "cavi" and model == "promp":
-        raise LmprompError("CAVI is offered for the lmpromp and mixture models, not for promp")
-    allowed = ENGINE_OPTIONS[engine.split("_")[0]]
-    unknown = sorted(set(options) - allowed)
-    if unknown:
-        raise LmprompError(f"engine {engine} does not take option(s) {', '.join(unknown)}; it takes {', '.join(sorted(allowed))}")
+    check_fit(model, engine, options)
     if hyper is None:
         hyper = preset("default" if engine == "cavi" else "proper")
-    num_basis = resolve_num_basis(num_basis, model)
-    if num_basis == "auto":
-        _check_mixture_options(model, options)
-        return _fit_auto_basis(data, model, engine, hyper, width=width, seed=seed, standardise=standardise,
-                               progress=progress, options=options)
-    spec, raw, scaled, scaling, mdata = prepare(data, num_basis, standardise=standardise, width=width)
+    if isinstance(data, PreparedDataset):
+        if num_basis is not None or width != DEFAULT_WIDTH or not standardise:
+            raise LmprompError("a PreparedDataset fixes num_basis, width and the scaling; do not pass them")
+        prepared = data
+    else:
+        num_basis = resolve_num_basis(num_basis, model)
+        if num_basis == "auto":
+            return _fit_auto_basis(data, model, engine, hyper, width=width, seed=seed, standardise=standardise,
+                                   progress=progress, options=options)
+        prepared = prepare_dataset(data, num_basis, standardise=standardise, width=width)
+    return _fit_prepared(prepared, model, engine, hyper, seed=seed, progress=progress, options=options)
+
+
+def _fit_prepared(prepared: PreparedDataset, model, engine, hyper, *, seed, progress, options) -> FitResult:
+    """The engine's fit on prepared model inputs, as a :class:`FitResult` with its degeneracy warnings."""
+    spec, raw, scaling, mdata = prepared.spec, prepared.raw, prepared.scaling, prepared.model_data
     hyper.validate_for(mdata.num_weights, mdata.num_demos)
     if model == "mixture" and mdata.num_demos < hyper.num_components:
         raise LmprompError(
@@ -163,8 +135,8 @@ def fit(
         model=model,
         engine=engine,
         hyper=hyper,
-        num_basis=num_basis,
-        width=float(width),
+        num_basis=prepared.num_basis,
+        width=prepared.width,
         num_dofs=raw.num_dofs,
         scaling=scaling,
         dataset=spec,
@@ -185,7 +157,7 @@ def fit(
 
 
 def select_num_basis(
-    data: Demonstrations | str,
+    data: Demonstrations | str | PreparedDataset,
     *,
     grid=AUTO_NUM_BASIS,
     hyper: Hyperparameters | None = None,
@@ -206,64 +178,58 @@ def select_num_basis(
     Every J compiles the engine once, so the selection costs about as many
     compilations as fits (40 s for ``synthetic:clusters`` on two cores).
 
+    The data are loaded and standardised once (a :class:`~lmpromp_ppl.data.PreparedDataset`
+    keeps its own scaling and width); only the design matrices change with J.
+
     Returns ``{"num_basis": J, "grid": [...], "elbo": [...], "seconds": wall time,
-    "result": FitResult at J}``.
+    "result": FitResult at J, "prepared": PreparedDataset at J}``.
     """
     import time
     import warnings
 
     start = time.perf_counter()
-    _, data = _load(data)
+    if isinstance(data, PreparedDataset):
+        base_data = data
+    else:
+        base_data = prepare_dataset(data, 2, standardise=standardise, width=width)
+    demos = base_data.scaled
     base = (preset("default") if hyper is None else hyper).replace(num_components=1)
-    shortest = int(np.min(data.lengths))
-    sizes = sorted({int(J) for J in grid if int(J) >= 2 and int(J) <= shortest and data.num_dofs * int(J) >= base.latent_dim})
+    shortest = int(np.min(demos.lengths))
+    sizes = sorted({int(J) for J in grid
+                    if 2 <= int(J) <= shortest and demos.num_dofs * int(J) >= base.latent_dim})
     if not sizes:
         raise LmprompError(f"no basis size of {list(grid)} fits demonstrations of {shortest} samples")
     bounds, best = [], None
     for J in sizes:
+        prepared = base_data.with_basis(J)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            res = fit(data, model="lmpromp", engine="cavi", hyper=base, num_basis=J, width=width, seed=seed,
-                      standardise=standardise)
+            res = _fit_prepared(prepared, "lmpromp", "cavi", base, seed=seed, progress=False, options={})
         bounds.append(float(res.summary["elbo"]))
-        if best is None or bounds[-1] > best.summary["elbo"]:
-            best = res  # only the best fit is kept: memory of one fit whatever the grid
-    return {"num_basis": best.num_basis, "grid": sizes, "elbo": bounds, "seconds": time.perf_counter() - start,
-            "result": best}
+        if best is None or bounds[-1] > best[0].summary["elbo"]:
+            best = (res, prepared)  # only the best fit is kept: memory of one fit whatever the grid
+    return {"num_basis": best[0].num_basis, "grid": sizes, "elbo": bounds, "seconds": time.perf_counter() - start,
+            "result": best[0], "prepared": best[1]}
 
 
 def _fit_auto_basis(data, model, engine, hyper, *, width, seed, standardise, progress, options) -> FitResult:
     """``fit(..., num_basis="auto")``: :func:`select_num_basis`, then the requested fit at the chosen J."""
-    spec, data = _load(data)
-    if model == "mixture" and data.num_demos < hyper.num_components:
-        raise LmprompError(f"fewer demonstrations (L={data.num_demos}) than mixture components (K={hyper.num_components})")
-    choice = select_num_basis(data, grid=AUTO_NUM_BASIS, hyper=hyper, width=width, seed=seed, standardise=standardise)
-    J = choice["num_basis"]
+    prepared = prepare_dataset(data, 2, standardise=standardise, width=width)
+    if model == "mixture" and prepared.raw.num_demos < hyper.num_components:
+        raise LmprompError(f"fewer demonstrations (L={prepared.raw.num_demos}) than mixture components "
+                           f"(K={hyper.num_components})")
+    choice = select_num_basis(prepared, grid=AUTO_NUM_BASIS, hyper=hyper, seed=seed)
     same = model == "lmpromp" and engine == "cavi" and not options and hyper.num_components == 1
-    result = choice["result"] if same else fit(data, model, engine, hyper, num_basis=J, width=width, seed=seed,
-                                                standardise=standardise, progress=progress, **options)
-    result.dataset = spec
+    result = choice["result"] if same else _fit_prepared(choice["prepared"], model, engine, hyper, seed=seed,
+                                                         progress=progress, options=options)
     result.summary["num_basis_selection"] = {key: choice[key] for key in ("num_basis", "grid", "elbo", "seconds")}
     return result
-
-
-def _check_mixture_options(model: str, options: dict) -> None:
-    """The mixture-only options: on the mixture only, and a known search (before any work)."""
-    from lmpromp_ppl.inference.mixture_search import SEARCHES
-
-    mixture_only = sorted(set(options) & MIXTURE_OPTIONS)
-    if model != "mixture" and mixture_only:
-        raise LmprompError(f"option(s) {', '.join(mixture_only)} apply to the mixture model only")
-    if "search" in options and options["search"] not in SEARCHES:
-        raise LmprompError(f"unknown search {options['search']!r}; choose from {list(SEARCHES)}")
 
 
 def _fit_cavi(mdata, key, progress, common, options, labels=None) -> FitResult:
     from lmpromp_ppl.inference import cavi
 
-    _check_mixture_options(common["model"], options)
-    fit_fn = cavi.fit_cavi_mixture if common["model"] == "mixture" else cavi.fit_cavi
-    res = fit_fn(mdata, common["hyper"], key, progress=progress, **options)
+    res = cavi.fit(mdata, common["hyper"], key, mixture=common["model"] == "mixture", progress=progress, **options)
     summary = {
         "elbo": float(res.elbo),
         "elbo_trace": np.asarray(res.elbo_trace).tolist(),
@@ -273,14 +239,15 @@ def _fit_cavi(mdata, key, progress, common, options, labels=None) -> FitResult:
         "compile_seconds": float(res.compile_seconds),
         "active_latent_dims": cavi.active_latent_dims(res.state),
     }
-    if hasattr(cavi, "active_components") and common["model"] == "mixture":
+    if common["model"] == "mixture":
         summary["active_components"] = cavi.active_components(res.state)
         if labels is not None:
-            summary["ari"] = adjusted_rand_index(labels, cavi._mixture.responsibilities(res.state))
+            summary["ari"] = adjusted_rand_index(labels, cavi.responsibilities(res.state))
     state = res.state
     return FitResult(
         **common,
         sampler=lambda k, n: cavi.sample_q(k, state, n),
+        log_density=lambda draws: cavi.log_q(state, draws),
         point={k: np.asarray(v) for k, v in cavi.point_estimate(state).items()},
         optimization={"elbo": np.asarray(res.elbo_trace)},
         summary=summary,
@@ -311,7 +278,7 @@ def _fit_nuts(mdata, key, progress, common, options) -> FitResult:
 def _fit_svi(mdata, key, progress, common, options) -> FitResult:
     from lmpromp_ppl.inference import svi
 
-    guide = common["engine"].removeprefix("svi_")
+    guide = guide_of(common["engine"])
     fit_key, draw_key = jax.random.split(key)
     res = svi.run_svi(common["model"], mdata, common["hyper"], fit_key, guide=guide, progress=progress, **options)
     loss = np.asarray(res.loss_trace)

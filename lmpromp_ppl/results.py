@@ -55,7 +55,7 @@ import xarray as xr
 
 from lmpromp_ppl.basis import DEFAULT_WIDTH
 from lmpromp_ppl.data.core import Scaling
-from lmpromp_ppl.diagnostics.quantities import derived_quantities
+from lmpromp_ppl.quantities import derived_quantities
 from lmpromp_ppl.errors import LmprompError
 from lmpromp_ppl.models.hyper import Hyperparameters
 
@@ -172,16 +172,21 @@ def _state_dataset(state) -> xr.Dataset:
 
 
 def _state_from_dataset(ds: xr.Dataset):
-    """Rebuild the CAVI state written by :func:`_state_dataset`."""
+    """Rebuild the CAVI state written by :func:`_state_dataset`.
+
+    Files written before the engine had one state (``state_type`` ``MixtureState``, or a
+    single-type ``CaviState`` without the component axis) are read into the current
+    :class:`~lmpromp_ppl.inference.cavi.CaviState`.
+    """
     import jax.numpy as jnp
 
     from lmpromp_ppl.inference import cavi
 
-    types = {"CaviState": cavi.CaviState, "MixtureState": cavi.MixtureState}
+    if ds.attrs["state_type"] not in ("CaviState", "MixtureState"):
+        raise LmprompError(f"unknown CAVI state type {ds.attrs['state_type']!r} in the saved fit")
     covs = {"FullCovariance": cavi.FullCovariance, "EigenCovariance": cavi.EigenCovariance}
-    state_type = types[ds.attrs["state_type"]]
     fields = {}
-    for name in state_type._fields:
+    for name in cavi.CaviState._fields:
         if f"{name}_type" in ds.attrs:
             cov_type = covs[ds.attrs[f"{name}_type"]]
             fields[name] = cov_type(**{sub: jnp.asarray(ds[f"{name}__{sub}"].values) for sub in cov_type._fields})
@@ -189,7 +194,9 @@ def _state_from_dataset(ds: xr.Dataset):
             fields[name] = jnp.asarray(ds[name].values)
         else:
             fields[name] = None
-    return state_type(**fields)
+    if fields["active"] is None:  # a single-type state saved without the component axis
+        return cavi.lift_single_type(fields)
+    return cavi.CaviState(**fields)
 
 
 def _encoding(tree: xr.DataTree) -> dict:
@@ -221,7 +228,8 @@ class FitResult:
 
     ``draws`` maps site names to arrays with leading (chain, draw) dims; VI
     engines instead give a ``sampler(key, num_draws) -> dict`` of draws from q
-    (leading draw axis) and ``draws`` is filled on demand.
+    (leading draw axis) and ``draws`` is filled on demand; CAVI also gives
+    ``log_density(draws) -> (n,)``, log q at such draws (for PSIS k-hat).
     """
 
     model: str
@@ -235,6 +243,7 @@ class FitResult:
     width: float = DEFAULT_WIDTH
     draws: dict | None = None
     sampler: Callable | None = None
+    log_density: Callable | None = None
     point: dict = field(default_factory=dict)
     sample_stats: dict = field(default_factory=dict)
     optimization: dict = field(default_factory=dict)
@@ -463,4 +472,5 @@ def load(path: str | Path) -> FitResult:
         state = _state_from_dataset(tree["variational"].to_dataset())
         result.state = state
         result.sampler = lambda k, n: cavi.sample_q(k, state, n)
+        result.log_density = lambda draws: cavi.log_q(state, draws)
     return result

@@ -59,8 +59,7 @@ import numpy as np
 import lmpromp_ppl as lp
 from lmpromp_ppl.api import prepare
 from lmpromp_ppl.basis import design_matrix, rbf_basis
-from lmpromp_ppl.inference.cavi import prepare_cavi_data
-from lmpromp_ppl.inference.init import ridge_weights
+from lmpromp_ppl.inference.cavi import prepare_cavi_data, ridge_weights
 from lmpromp_ppl.predict import (
     condition,
     prior,
@@ -103,7 +102,8 @@ plt.tight_layout()
 # weight vector $w_i$; $\Psi w_i$ reproduces the demonstration.
 
 # %%
-spec, raw, scaled, scaling, mdata = prepare(SPEC, NUM_BASIS)
+prepared = prepare(SPEC, NUM_BASIS)  # loaded, standardised and turned into model inputs once
+spec, raw, scaled, scaling, mdata = prepared.spec, prepared.raw, prepared.scaled, prepared.scaling, prepared.model_data
 D, J = raw.num_dofs, NUM_BASIS
 W = ridge_weights(prepare_cavi_data(mdata))  # (L, D*J), standardised space
 L, d = W.shape

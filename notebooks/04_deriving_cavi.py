@@ -60,7 +60,7 @@ from numpyro.infer.util import log_density
 import lmpromp_ppl as lp
 from lmpromp_ppl.api import prepare
 from lmpromp_ppl.inference import cavi
-from lmpromp_ppl.inference.init import init_state
+from lmpromp_ppl.inference.cavi import init_state
 from lmpromp_ppl.models.lmpromp import lmpromp_model
 
 plt.rcParams.update({"figure.dpi": 90, "axes.grid": True, "grid.alpha": 0.3})
@@ -98,11 +98,14 @@ plt.rcParams.update({"figure.dpi": 90, "axes.grid": True, "grid.alpha": 0.3})
 #
 # Twelve demonstrations drawn from the LMProMP itself; the state is CAVI's
 # initialisation (ridge regression + PCA) after two sweeps, then perturbed so
-# that no factor is at its optimum.
+# that no factor is at its optimum.  The engine's state always has a component
+# axis (the mixture's k); the single-type LMProMP is the case K = 1, so
+# $\mu_b$ is `state.b_mean[0]`, $\bar M$ is `state.M_mean[0]` and $\mu_{h_i}$ is
+# `state.h_mean[i, 0]`.
 
 # %%
 hyper = lp.Hyperparameters(latent_dim=2, beta=400.0)
-_, _, _, _, mdata = prepare("synthetic:latent?L=12&D=2&J=5&V=2&T=20&beta=400&seed=3", 5)
+mdata = prepare("synthetic:latent?L=12&D=2&J=5&V=2&T=20&beta=400&seed=3", 5).model_data
 data = cavi.prepare_cavi_data(mdata)
 H = cavi.hyper_arrays(hyper)
 state = init_state(data, hyper, key=jax.random.key(0))
@@ -116,20 +119,20 @@ state = state._replace(
     alpha_rate=0.7 * state.alpha_rate,
 )
 L, d = state.w_mean.shape
-print(f"L={L}, d={d}, V={state.h_mean.shape[1]}, ELBO {float(cavi.elbo(state, data, H)):.3f}")
+print(f"L={L}, d={d}, K={state.b_mean.shape[0]}, V={state.h_mean.shape[2]}, ELBO {float(cavi.elbo(state, data, H)):.3f}")
 
 # %% [markdown]
 # ## 1. The update by hand against the code
 
 # %%
-alpha_bar = float(state.alpha_shape / state.alpha_rate)
+alpha_bar = float(state.alpha_shape[0] / state.alpha_rate[0])
 sigma_b = 1.0 / (L * alpha_bar + hyper.lambda0)
-mu_b = sigma_b * alpha_bar * np.sum(np.asarray(state.w_mean) - np.asarray(state.h_mean) @ np.asarray(state.M_mean).T, axis=0)
+mu_b = sigma_b * alpha_bar * np.sum(np.asarray(state.w_mean) - np.asarray(state.h_mean[:, 0]) @ np.asarray(state.M_mean[0]).T, axis=0)
 updated = cavi.update_b(state, data, H)
-print("sigma_b: by hand", sigma_b, "| code", float(updated.b_var))
-print("max |mu_b(hand) - mu_b(code)| =", np.abs(mu_b - np.asarray(updated.b_mean)).max())
-assert np.isclose(sigma_b, float(updated.b_var), rtol=1e-12)
-assert np.allclose(mu_b, np.asarray(updated.b_mean), rtol=1e-10, atol=1e-12)
+print("sigma_b: by hand", sigma_b, "| code", float(updated.b_var[0]))
+print("max |mu_b(hand) - mu_b(code)| =", np.abs(mu_b - np.asarray(updated.b_mean[0])).max())
+assert np.isclose(sigma_b, float(updated.b_var[0]), rtol=1e-12)
+assert np.allclose(mu_b, np.asarray(updated.b_mean[0]), rtol=1e-10, atol=1e-12)
 
 # %% [markdown]
 # ## 2. Autodiff stationarity
@@ -142,17 +145,21 @@ assert np.allclose(mu_b, np.asarray(updated.b_mean), rtol=1e-10, atol=1e-12)
 # (and the mean computed with it), is checked the same way.
 
 # %%
-grad_elbo = jax.jit(jax.grad(cavi.elbo))
+def elbo_of_b(b_mean, b_var, s):
+    return cavi.elbo(s._replace(b_mean=b_mean, b_var=b_var), data, H)
+
+
+grad_b = jax.jit(jax.grad(elbo_of_b, argnums=(0, 1)))
 
 
 def b_gradient(s):
-    g = grad_elbo(s, data, H)
-    return float(jnp.sqrt(jnp.sum(g.b_mean**2) + g.b_var**2))
+    g_mean, g_var = grad_b(s.b_mean, s.b_var, s)
+    return float(jnp.sqrt(jnp.sum(g_mean**2) + jnp.sum(g_var**2)))
 
 
 precision = L * alpha_bar + hyper.lambda0
 thesis_var = precision  # App. B.1: no inverse, and mu_b = sigma_b alpha_bar sum_i (...) with that sigma_b
-thesis = state._replace(b_var=jnp.asarray(thesis_var), b_mean=jnp.asarray(thesis_var * mu_b / sigma_b))
+thesis = state._replace(b_var=jnp.asarray([thesis_var]), b_mean=jnp.asarray(thesis_var * mu_b / sigma_b)[None])
 rows = {"before the update": state, "after update_b": updated, "thesis App. B.1 sigma_b": thesis}
 gradients = {name: b_gradient(s) for name, s in rows.items()}
 values = {name: float(cavi.elbo(s, data, H)) for name, s in rows.items()}
@@ -168,7 +175,7 @@ assert gradients["thesis App. B.1 sigma_b"] > 1e-3 * gradients["before the updat
 
 # %%
 grid = np.geomspace(sigma_b / 30, max(thesis_var, sigma_b) * 3, 200)
-curve = jax.vmap(lambda v: cavi.elbo(updated._replace(b_var=v), data, H))(jnp.asarray(grid))
+curve = jax.vmap(lambda v: cavi.elbo(updated._replace(b_var=v[None]), data, H))(jnp.asarray(grid))
 fig, ax = plt.subplots(figsize=(7, 3.2))
 ax.semilogx(grid, np.asarray(curve))
 ax.axvline(sigma_b, color="C2", label=r"$(L\bar\alpha + \lambda_0)^{-1}$ (Sec. 4.1.1)")
@@ -185,7 +192,7 @@ plt.tight_layout()
 # $\theta \sim q$ (`cavi.sample_q`), evaluate $\log p(y, \theta)$ with
 # `numpyro.infer.util.log_density` on the **declared** model
 # `lmpromp_model` (the same one NUTS and SVI sample), subtract $\log q$ from
-# NumPyro distributions with $q$'s parameters, and average.  The closed form
+# NumPyro distributions with $q$'s parameters (component 0 of the state), and average.  The closed form
 # must lie within a few Monte Carlo standard errors.  This catches anything
 # the stationarity test cannot: a wrong constant, a term missing from both
 # the bound and its updates.
@@ -196,11 +203,11 @@ def log_p_minus_log_q(draws, s):
     log_p = jax.vmap(lambda p: log_density(lmpromp_model, (mdata, hyper), {}, p)[0])(draws)
     log_q = (
         dist.MultivariateNormal(s.w_mean, cavi.w_covariance(s)).log_prob(draws["w"]).sum(-1)
-        + dist.MultivariateNormal(s.h_mean, s.h_cov).log_prob(draws["h"]).sum(-1)
-        + dist.Normal(s.b_mean, jnp.sqrt(s.b_var)).log_prob(draws["b"]).sum(-1)
-        + dist.Normal(s.M_mean, jnp.sqrt(s.M_var)).log_prob(draws["M"]).sum((-2, -1))
-        + dist.Gamma(s.alpha_shape, s.alpha_rate).log_prob(draws["alpha"])
-        + dist.Gamma(s.lam_shape, s.lam_rate).log_prob(draws["lam"]).sum(-1)
+        + dist.MultivariateNormal(s.h_mean[:, 0], s.h_cov[:, 0]).log_prob(draws["h"]).sum(-1)
+        + dist.Normal(s.b_mean[0], jnp.sqrt(s.b_var[0])).log_prob(draws["b"]).sum(-1)
+        + dist.Normal(s.M_mean[0], jnp.sqrt(s.M_var[0])).log_prob(draws["M"]).sum((-2, -1))
+        + dist.Gamma(s.alpha_shape[0], s.alpha_rate[0]).log_prob(draws["alpha"])
+        + dist.Gamma(s.lam_shape[0], s.lam_rate[0]).log_prob(draws["lam"]).sum(-1)
     )
     return log_p - log_q
 

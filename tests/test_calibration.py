@@ -13,6 +13,7 @@ from scipy import stats
 
 from lmpromp_ppl.calibration.sbc import (
     SbcProblem,
+    design,
     collect,
     pit_values,
     rank_statistics,
@@ -24,8 +25,7 @@ from lmpromp_ppl.calibration.sbc import (
 from lmpromp_ppl.calibration.sweep import heldout_scores, parse_grid, split_demos
 from lmpromp_ppl.calibration.vsbc import numpyro_vsbc, vsbc_probabilities, vsbc_test
 from lmpromp_ppl.errors import DataError, LmprompError
-from lmpromp_ppl.inference.batch import fit_cavi_batched, replicate_state
-from lmpromp_ppl.inference.cavi import fit_cavi
+from lmpromp_ppl.inference.cavi import fit, fit_cavi_batched, replicate_state
 from lmpromp_ppl.models.hyper import preset
 
 R, N, NOBS = 300, 99, 5
@@ -90,7 +90,8 @@ def test_rank_and_pit_properties():
 def test_vsbc_statistic_is_numpyros():
     """numpyro's vsbc_diagnostic on the collapsed LMProMP: our statistic on its probabilities gives its KS values."""
     problem = SbcProblem(num_demos=4, num_basis=3, num_steps=8, latent_dim=1, num_draws=49)
-    out = numpyro_vsbc(problem, jax.random.key(0), num_simulations=8, num_svi_steps=100, num_samples=50)
+    out = numpyro_vsbc(problem.model, design(problem), problem.hyper(), jax.random.key(0), num_simulations=8,
+                       num_svi_steps=100, num_samples=50)
     assert set(out["probabilities"]) >= {"b", "M", "alpha", "lam"}
     for site, probabilities in out["probabilities"].items():
         p = np.asarray(probabilities).reshape(8, -1)
@@ -110,7 +111,7 @@ def test_batched_cavi_matches_one_at_a_time(problem):
     batched = fit_cavi_batched(datasets, problem.hyper())
     assert batched.converged.all()
     for r, data in enumerate(datasets):
-        single = fit_cavi(data, problem.hyper(), jax.random.key(0))
+        single = fit(data, problem.hyper(), jax.random.key(0))
         assert single.iterations == batched.iterations[r]
         np.testing.assert_allclose(single.elbo, batched.elbo[r], rtol=1e-10)
         state = replicate_state(batched, r)

@@ -32,8 +32,9 @@ from lmpromp_ppl.data import ModelData, load_dataset, model_data, standardize
 from lmpromp_ppl.data.synthetic import GENERATOR_WIDTH, latent_manifold
 from lmpromp_ppl.errors import LmprompError
 from lmpromp_ppl.inference import cavi
-from lmpromp_ppl.inference import cavi_mixture as cm
-from lmpromp_ppl.inference.init import init_mixture_state, init_state
+from lmpromp_ppl.inference import cavi as cm
+from lmpromp_ppl.inference.cavi import init_mixture_state, init_state
+from lmpromp_ppl.inference.cavi.posterior import _gamma_draws
 from lmpromp_ppl.models.hyper import SIMULATION, Hyperparameters
 from lmpromp_ppl.models.lmpromp import lmpromp_model
 from lmpromp_ppl.models.mixture import mixture_model
@@ -64,14 +65,10 @@ def small():
 def _start(model, family, learn_beta, cdata, hyper, key):
     if model == "mixture":
         return init_mixture_state(cdata, hyper, key, family=family)
-    beta = None
-    if learn_beta:
-        shape = hyper.beta_a0 + 0.5 * float(jnp.sum(cdata.num_obs))
-        beta = (shape, shape / hyper.beta)
-    return cm.lift_state(init_state(cdata, hyper, key=key), family, beta)
+    return init_state(cdata, hyper, key=key, family=family)  # q(beta) when hyper.learn_beta
 
 
-def _perturb(state: cm.MixtureState, seed: int) -> cm.MixtureState:
+def _perturb(state: cm.CaviState, seed: int) -> cm.CaviState:
     """An arbitrary valid state at which no factor is optimal."""
     rng = np.random.default_rng(seed)
     shift = lambda a, scale: a + scale * rng.standard_normal(a.shape)  # noqa: E731
@@ -177,7 +174,7 @@ def sweeps(small, starts):
     _, cdata = small
     out = {}
     for combo, state in starts.items():
-        hyper = cm.mixture_hyper_arrays(_hyper(combo[0], combo[2]))
+        hyper = cm.hyper_arrays(_hyper(combo[0], combo[2]))
         records = []
         for _ in range(6):
             state, values, before, after = _sweep_check(state, cdata, hyper)
@@ -224,7 +221,7 @@ def test_each_update_is_stationary_by_autodiff(sweeps, combo):
 NUM_DRAWS = 10000
 
 
-def _mask_last_component(state: cm.MixtureState, hyper: Hyperparameters) -> cm.MixtureState:
+def _mask_last_component(state: cm.CaviState, hyper: Hyperparameters) -> cm.CaviState:
     """Remove component K-1 as :func:`cm.prune` would (responsibilities renormalised, q(pi) updated)."""
     active = jnp.arange(K) < K - 1
     resp = jnp.where(active[None], state.resp, 0.0)
@@ -233,7 +230,7 @@ def _mask_last_component(state: cm.MixtureState, hyper: Hyperparameters) -> cm.M
 
 
 @jax.jit
-def _log_q(state: cm.MixtureState, draws: dict) -> jax.Array:
+def _log_q(state: cm.CaviState, draws: dict) -> jax.Array:
     """log q of each draw (the library's :func:`cm.log_q`, used for k-hat; checked here by the bound)."""
     return cm.log_q(state, draws)
 
@@ -246,7 +243,7 @@ def _prior_draws(key, hyper):
     """
     k_g, key = jax.random.split(key)
     shapes = jnp.concatenate([jnp.full(K * V, hyper.c0), jnp.full(K, hyper.a0), jnp.ones(K + 1)])
-    return _prior_rest(key, cavi._gamma_draws(k_g, shapes, NUM_DRAWS), hyper)
+    return _prior_rest(key, _gamma_draws(k_g, shapes, NUM_DRAWS), hyper)
 
 
 @jax.jit
@@ -279,9 +276,9 @@ def _prior_draws_of_removed(key, draws, state, hyper):
     return draws, jnp.where(removed, log_prior, 0.0).sum(-1)
 
 
-def _c2_dropped_terms(state: cm.MixtureState, hyper: cm.MixtureHyper) -> float:
+def _c2_dropped_terms(state: cm.CaviState, hyper: cm.CaviHyper) -> float:
     """What App. C.1 / C.2 drop: the factor (d - 1) on Sigma_M in E log p(w) and (d/2) sum E log lam."""
-    st = cm.mixture_stats(state, hyper)
+    st = cm.expected_stats(state, hyper)
     d = state.w_mean.shape[1]
     M_cov = state.M_var if state.M_var.ndim == 3 else jax.vmap(jnp.diag)(state.M_var)
     sigma_terms = jnp.einsum("ik,k,kuv,ikvu->", st.resp, st.alpha_mean, M_cov, st.hhT)
@@ -313,21 +310,21 @@ def test_closed_form_elbo_matches_numpyro_monte_carlo(small, combo):
     state = _perturb(_start(model, family, learn_beta, cdata, hyper, jax.random.key(4)), seed=5)
     if model == "mixture":
         state = _mask_last_component(state, hyper)
-    closed = float(cm.elbo(state, cdata, cm.mixture_hyper_arrays(hyper)))
+    closed = float(cm.elbo(state, cdata, cm.hyper_arrays(hyper)))
     k_q, k_pi, k_removed = jax.random.split(jax.random.key(6), 3)
     draws = cm.sample_q(k_q, state, NUM_DRAWS)
     extra = 0.0
     if model == "mixture":
         assert draws["z"].shape == (NUM_DRAWS, L) and int(draws["z"].max()) < K - 1  # z from q(z)
         draws["pi"] = dist.Dirichlet(state.pi_conc).sample(k_pi, (NUM_DRAWS,))  # q(pi) over all K
-        draws, extra = _prior_draws_of_removed(k_removed, draws, state, cm.mixture_hyper_arrays(hyper))
+        draws, extra = _prior_draws_of_removed(k_removed, draws, state, cm.hyper_arrays(hyper))
     values = _log_p(model, hyper, data, draws) - np.asarray(_log_q(state, draws) + extra)
     mean, standard_error = values.mean(), values.std(ddof=1) / np.sqrt(NUM_DRAWS)
     assert abs(closed - mean) <= 4.0 * standard_error, (closed, mean, standard_error)
     # the test has the resolution to see an error of the thesis's bound: for the single type the
     # non-constant terms C.1 drops; for the mixture C.2's sign slip on E log q(z) (2 H[q(z)])
     if model == "single":
-        assert 4.0 * standard_error < abs(_c2_dropped_terms(state, cm.mixture_hyper_arrays(hyper)))
+        assert 4.0 * standard_error < abs(_c2_dropped_terms(state, cm.hyper_arrays(hyper)))
     else:
         entropy_z = -float(jnp.sum(jnp.where(state.resp > 0, state.resp * jnp.log(state.resp), 0.0)))
         assert 4.0 * standard_error < 2.0 * entropy_z
@@ -340,7 +337,7 @@ def test_rowwise_M_update_never_below_columnwise(small, starts):
     for (model, family, learn_beta), state in starts.items():
         if family != "rowwise":
             continue
-        hyper = cm.mixture_hyper_arrays(_hyper(model, learn_beta))
+        hyper = cm.hyper_arrays(_hyper(model, learn_beta))
         diagonal = state._replace(M_var=jnp.diagonal(state.M_var, axis1=-2, axis2=-1))
         row = float(cm.elbo(cm.update_M(state, cdata, hyper), cdata, hyper))
         col = float(cm.elbo(cm.update_M(diagonal, cdata, hyper), cdata, hyper))
@@ -352,8 +349,8 @@ def test_families_coincide_at_V_equal_1(small):
     """At V = 1 a (1 x 1) row covariance is a column variance: same q(M) update, same bound."""
     _, cdata = small
     hyper = Hyperparameters(beta=100.0, latent_dim=1)
-    hyper_arr = cm.mixture_hyper_arrays(hyper)
-    column = _perturb(cm.lift_state(init_state(cdata, hyper, key=jax.random.key(7))), seed=8)
+    hyper_arr = cm.hyper_arrays(hyper)
+    column = _perturb(init_state(cdata, hyper, key=jax.random.key(7)), seed=8)
     row = column._replace(M_var=column.M_var[..., None])
     assert float(cm.elbo(row, cdata, hyper_arr)) == pytest.approx(float(cm.elbo(column, cdata, hyper_arr)), rel=1e-12)
     column, row = cm.update_M(column, cdata, hyper_arr), cm.update_M(row, cdata, hyper_arr)
@@ -368,7 +365,7 @@ def test_diagonal_row_covariance_is_the_columnwise_distribution(starts, small):
     for (model, family, learn_beta), column in starts.items():
         if family != "columnwise":
             continue
-        hyper = cm.mixture_hyper_arrays(_hyper(model, learn_beta))
+        hyper = cm.hyper_arrays(_hyper(model, learn_beta))
         row = column._replace(M_var=jax.vmap(jnp.diag)(column.M_var))
         assert float(cm.elbo(row, cdata, hyper)) == pytest.approx(float(cm.elbo(column, cdata, hyper)), rel=1e-12)
 
@@ -387,7 +384,7 @@ def cluster_fits(clusters):
     data, _ = clusters
     hyper = Hyperparameters(latent_dim=2, num_components=6)
     return {
-        family: cavi.fit_cavi_mixture(data, hyper, jax.random.key(0), family=family, tol=1e-10)
+        family: cavi.fit(data, hyper, jax.random.key(0), mixture=True, family=family, tol=1e-10)
         for family in cm.FAMILIES
     }
 
@@ -406,26 +403,31 @@ def test_rowwise_converged_bound_not_below_columnwise(cluster_fits):
 
 
 # --------------------------------------------------------------------------- engines agree
-def test_one_component_engine_equals_single_type_engine(small):
-    """The K = 1 column-wise fixed-beta state of this engine reproduces cavi.step's ELBO trace."""
+def test_one_component_mixture_equals_single_type(small):
+    """A mixture state with K = 1 (q(z) and q(pi) present) has the single type's bound and sweeps.
+
+    With one component the terms in z and pi vanish (E log pi = 0, r log r = 0, the Dirichlet
+    terms cancel), so the mixture's updates of z and pi change nothing the bound sees.
+    """
     data, cdata = small
     hyper = Hyperparameters(beta=100.0, latent_dim=V)
     single = init_state(cdata, hyper, key=jax.random.key(8))
-    lifted = cm.lift_state(single)
-    hyper_single, hyper_mixture = cavi.hyper_arrays(hyper), cm.mixture_hyper_arrays(hyper)
-    assert float(cm.elbo(lifted, cdata, hyper_mixture)) == pytest.approx(
-        float(cavi.elbo(single, cdata, hyper_single)), rel=1e-12
+    as_mixture = single._replace(resp=jnp.ones((L, 1)), pi_conc=jnp.asarray([hyper.kappa0 + L]))
+    hyper_arr = cm.hyper_arrays(hyper)
+    assert list(cm.updates_for(as_mixture)) == list(cm.updates_for(single)) + ["z", "pi"]
+    assert float(cm.elbo(as_mixture, cdata, hyper_arr)) == pytest.approx(
+        float(cm.elbo(single, cdata, hyper_arr)), rel=1e-12
     )
     for _ in range(10):
-        single, info_single = cavi.step(single, cdata, hyper_single)
-        lifted, info_lifted = cm.step(lifted, cdata, hyper_mixture)
-        assert float(info_lifted.elbo) == pytest.approx(float(info_single.elbo), rel=1e-10)
+        single, info_single = cm.step(single, cdata, hyper_arr)
+        as_mixture, info_mixture = cm.step(as_mixture, cdata, hyper_arr)
+        assert float(info_mixture.elbo) == pytest.approx(float(info_single.elbo), rel=1e-10)
 
 
 # --------------------------------------------------------------------------- thesis errata (Sec. 4.2.1, B.2)
 def _thesis_h(state, data, hyper):
     """Sec. 4.2.1 / B.2: the update of every h_ik sums over all components."""
-    st = cm.mixture_stats(state, hyper)
+    st = cm.expected_stats(state, hyper)
     weights = st.resp * st.alpha_mean[None]  # (L, K)
     precision = jnp.einsum("ik,kuv->iuv", weights, st.MtM) + hyper.gamma * jnp.eye(V)
     offset = state.w_mean[:, None, :] - state.b_mean[None]
@@ -440,7 +442,7 @@ def _thesis_h(state, data, hyper):
 
 def _thesis_alpha(state, data, hyper):
     """Final b_bar_k of Sec. 4.2.1 / B.2: the residuals are summed without the responsibilities."""
-    st = cm.mixture_stats(state, hyper)
+    st = cm.expected_stats(state, hyper)
     updated = cm.update_alpha(state, data, hyper)
     return updated._replace(alpha_rate=hyper.b0 + 0.5 * jnp.sum(st.residual_sq, axis=0))
 
@@ -448,7 +450,7 @@ def _thesis_alpha(state, data, hyper):
 def _thesis_z(state, data, hyper):
     """rho_k of Sec. 4.2.1: a_bar_k / 2 in place of alpha_bar_k / 2."""
     d = state.w_mean.shape[1]
-    st = cm.mixture_stats(state, hyper)
+    st = cm.expected_stats(state, hyper)
     logits = st.log_pi_mean + 0.5 * d * st.log_alpha_mean - 0.5 * state.alpha_shape * st.residual_sq
     return state._replace(resp=jax.nn.softmax(logits, axis=1))
 
@@ -456,7 +458,7 @@ def _thesis_z(state, data, hyper):
 def _thesis_Q(state, data, hyper):
     """b_bar_k with Sec. 4.2.1's Q = (M^T d M + Sigma_M) Sigma_h (the factor d misplaced)."""
     d = state.w_mean.shape[1]
-    st = cm.mixture_stats(state, hyper)
+    st = cm.expected_stats(state, hyper)
     M_cov = jax.vmap(jnp.diag)(state.M_var)
     thesis_MtM = d * jnp.einsum("kdu,kdv->kuv", state.M_mean, state.M_mean) + M_cov
     correction = jnp.einsum("kuv,ikvu->ik", thesis_MtM - st.MtM, state.h_cov)
@@ -475,7 +477,7 @@ _norms_jit = jax.jit(_factor_norms)
 def test_thesis_mixture_updates_are_not_stationary(small, starts, factor, thesis_update):
     _, cdata = small
     state = starts["mixture", "columnwise", False]
-    hyper = cm.mixture_hyper_arrays(_hyper("mixture", False))
+    hyper = cm.hyper_arrays(_hyper("mixture", False))
     index = list(cm.updates_for(state)).index(factor)
     _, before = _norms_jit(state, cdata, hyper)
     value, after = _norms_jit(thesis_update(state, cdata, hyper), cdata, hyper)
@@ -527,8 +529,8 @@ def test_learned_beta_recovers_noise_precision():
     data = model_data(demos, 10)  # not standardised: the noise keeps precision 400
     hyper = Hyperparameters(beta=100.0, latent_dim=2, learn_beta=True)
     # the noise split between alpha and beta converges slowly; 1e-6 moves beta by far less than 1 %
-    fit = cavi.fit_cavi(data, hyper, jax.random.key(0), family="rowwise", tol=1e-6)
-    assert isinstance(fit.state, cm.MixtureState) and fit.converged
+    fit = cavi.fit(data, hyper, jax.random.key(0), family="rowwise", tol=1e-6)
+    assert isinstance(fit.state, cm.CaviState) and fit.converged
     beta = float(cavi.point_estimate(fit.state)["beta"])
     assert abs(beta / 400.0 - 1.0) < 0.14, beta
     draws = cavi.sample_q(jax.random.key(0), fit.state, 3)
@@ -543,8 +545,8 @@ def test_learned_beta_recovers_noise_precision():
 def test_invalid_options_are_refused(small):
     data, _ = small
     with pytest.raises(LmprompError, match="family"):
-        cavi.fit_cavi(data, Hyperparameters(latent_dim=V), jax.random.key(0), family="diagonal")
+        cavi.fit(data, Hyperparameters(latent_dim=V), jax.random.key(0), family="diagonal")
     with pytest.raises(LmprompError, match="more mixture components"):
-        cavi.fit_cavi_mixture(data, Hyperparameters(latent_dim=V, num_components=L + 1), jax.random.key(0))
+        cavi.fit(data, Hyperparameters(latent_dim=V, num_components=L + 1), jax.random.key(0), mixture=True)
     with pytest.raises(LmprompError, match="prune_threshold"):
-        cavi.fit_cavi_mixture(data, _hyper("mixture", False), jax.random.key(0), prune_threshold=-1.0)
+        cavi.fit(data, _hyper("mixture", False), jax.random.key(0), mixture=True, prune_threshold=-1.0)

@@ -1,4 +1,4 @@
-"""The mixture's split-and-merge search (lmpromp_ppl.inference.mixture_search) and its reporting.
+"""The mixture's split-and-merge search (lmpromp_ppl.inference.cavi.search) and its reporting.
 
 * the acceptance rule keeps a move only when the bound rises, and the best bound
   over a search never decreases;
@@ -18,12 +18,12 @@ from lmpromp_ppl.basis import DEFAULT_NUM_BASIS, DEFAULT_WIDTH
 from lmpromp_ppl.data import Demonstrations, load_dataset, model_data, standardize
 from lmpromp_ppl.errors import LmprompError
 from lmpromp_ppl.inference import cavi
-from lmpromp_ppl.inference import mixture_search as ms
-from lmpromp_ppl.inference.init import init_mixture_state
+from lmpromp_ppl.inference.cavi import init_mixture_state
+from lmpromp_ppl.inference.cavi import search as ms
 from lmpromp_ppl.models.hyper import Hyperparameters
 from lmpromp_ppl.reports.real_data import POOLED_LASA
 
-cm = cavi._mixture
+cm = cavi
 
 
 def test_acceptance_rule_needs_a_higher_bound():
@@ -41,7 +41,7 @@ def clusters_state():
     demos, _ = standardize(load_dataset("synthetic:clusters"))
     data = cavi.prepare_cavi_data(model_data(demos, 10))
     hyper = Hyperparameters(latent_dim=2, num_components=6)
-    return data, hyper, cm.mixture_hyper_arrays(hyper), init_mixture_state(data, hyper, jax.random.key(3))
+    return data, hyper, cm.hyper_arrays(hyper), init_mixture_state(data, hyper, jax.random.key(3))
 
 
 def test_merge_and_split_moves_give_valid_states(clusters_state):
@@ -71,7 +71,7 @@ def test_search_best_bound_never_decreases_and_beats_plain_cavi(clusters_state):
     found = ms.search(state, data, hyper_arr, seed=0)
     assert np.all(np.diff(found.best_elbos) >= 0.0)
     assert len(found.best_elbos) == len(found.moves) + 2 or len(found.moves) == 12
-    plain = cavi._run_one(state, data, hyper_arr, 1e-8, 300, False, "", step_fn=cm.step)[1][-1]
+    plain = cavi.run(state, data, hyper_arr, 1e-8, 300).elbo_trace[-1]
     assert found.elbo >= plain
     assert found.elbo == pytest.approx(float(cm.elbo(found.state, data, hyper_arr)), rel=1e-10)
 

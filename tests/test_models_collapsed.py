@@ -34,7 +34,7 @@ from lmpromp_ppl.models import (
     sample_h_given_theta,
     sample_w_given_theta,
 )
-from lmpromp_ppl.models.collapsed import gaussian_conditional
+from lmpromp_ppl.models.conditionals import gaussian_conditional
 
 HYPER = Hyperparameters(
     beta=4.0, lambda0=0.7, gamma=1.3, a0=2.5, b0=0.6, c0=1.7, d0=0.9, latent_dim=2,

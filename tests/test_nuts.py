@@ -11,7 +11,9 @@ import arviz_stats
 from lmpromp_ppl.data.core import model_data, standardize
 from lmpromp_ppl.data.synthetic import latent_manifold
 from lmpromp_ppl.errors import LmprompError
-from lmpromp_ppl.inference.nuts import identifiable_quantities, reliability, run_nuts
+from lmpromp_ppl.diagnostics.metrics import quantity_reliability
+from lmpromp_ppl.inference.nuts import run_nuts
+from lmpromp_ppl.quantities import invariant_quantities
 from lmpromp_ppl.models.hyper import preset
 
 NUM_DRAWS = 300
@@ -73,11 +75,11 @@ def conjugate_runs(data, hyper, theta):
             "lmpromp", data, hyper, jax.random.key(11), collapsed=collapsed, num_chains=2,
             num_warmup=NUM_DRAWS, num_samples=NUM_DRAWS, fixed=theta,
         )
-        for collapsed in (False, "w")
+        for collapsed in ("none", "w")
     }
 
 
-@pytest.mark.parametrize("collapsed", [False, "w"])
+@pytest.mark.parametrize("collapsed", ["none", "w"])
 def test_nuts_recovers_exact_gaussian_posterior(conjugate_runs, data, hyper, theta, collapsed):
     """Means, s.d.s and random projections of (w_i, h_i) match the exact posterior within 4 MCSE.
 
@@ -107,7 +109,7 @@ def test_nuts_recovers_exact_gaussian_posterior(conjugate_runs, data, hyper, the
 def test_nuts_result_layout(conjugate_runs, data):
     """Sites, shapes (chain, draw, ...), sample statistics; fixed sites left out."""
     num_demos, _, d = data.psi.shape
-    full, collapsed = conjugate_runs[False], conjugate_runs["w"]
+    full, collapsed = conjugate_runs["none"], conjugate_runs["w"]
     for result in (full, collapsed):
         assert set(result.samples) == {"w", "h"}
         assert result.samples["w"].shape == (2, NUM_DRAWS, num_demos, d)
@@ -167,14 +169,14 @@ def test_identifiable_quantities_and_reliability():
     rotation = np.array([[0.6, -0.8], [0.8, 0.6]])
     samples = {"b": rng.normal(size=(2, 200, 5)), "alpha": rng.gamma(2.0, size=(2, 200)),
                "lam": rng.gamma(2.0, size=(2, 200, 2)), "M": M}
-    q = identifiable_quantities(samples)
-    rotated = identifiable_quantities(dict(samples, M=M @ rotation))
+    q = invariant_quantities(samples)
+    rotated = invariant_quantities(dict(samples, M=M @ rotation))
     np.testing.assert_allclose(q["gram_eig"], rotated["gram_eig"], rtol=1e-10, atol=1e-12)
     assert np.all(np.diff(q["gram_eig"], axis=-1) <= 0)
     assert np.all(np.diff(q["lam_sorted"], axis=-1) >= 0)
-    iid = reliability({"alpha": q["alpha"]})["alpha"]
+    iid = quantity_reliability({"alpha": q["alpha"]})["alpha"]
     assert iid["rhat_max"] < 1.05 and iid["ess_bulk_min"] > 100
-    stuck = reliability({"alpha": q["alpha"] + np.array([[0.0], [5.0]])})["alpha"]
+    stuck = quantity_reliability({"alpha": q["alpha"] + np.array([[0.0], [5.0]])})["alpha"]
     assert stuck["rhat_max"] > 1.5
 
 

@@ -14,7 +14,9 @@ import pytest
 import jax
 
 from lmpromp_ppl.data import load_dataset, model_data, standardize
-from lmpromp_ppl.inference.nuts import identifiable_quantities, reliability, run_nuts
+from lmpromp_ppl.diagnostics.metrics import quantity_reliability
+from lmpromp_ppl.inference.nuts import run_nuts
+from lmpromp_ppl.quantities import invariant_quantities
 from lmpromp_ppl.models.hyper import preset
 
 
@@ -28,7 +30,7 @@ def test_nuts_is_reliable_on_twenty_demonstrations():
     assert int(np.sum(result.sample_stats["diverging"])) == 0
     assert result.samples["w"].shape == (2, 500, 20, 20)
     assert result.samples["h"].shape == (2, 500, 20, 3)
-    summary = reliability(identifiable_quantities(result.samples))
+    summary = quantity_reliability(invariant_quantities(result.samples))
     for name, diagnostics in summary.items():
         assert diagnostics["rhat_max"] <= 1.01, (name, diagnostics)
         assert diagnostics["ess_bulk_min"] >= 400, (name, diagnostics)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from lmpromp_ppl.data.core import Scaling
-from lmpromp_ppl.diagnostics.quantities import gram_eigenvalues, trajectory_moments
+from lmpromp_ppl.quantities import gram_eigenvalues, trajectory_moments
 from lmpromp_ppl.errors import LmprompError
 from lmpromp_ppl.models.hyper import Hyperparameters
 from lmpromp_ppl.results import FitResult, load

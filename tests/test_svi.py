@@ -10,7 +10,7 @@ from lmpromp_ppl.data.core import model_data, standardize
 from lmpromp_ppl.data.synthetic import latent_manifold
 from lmpromp_ppl.errors import ConvergenceWarning, LmprompError
 from lmpromp_ppl.inference import cavi
-from lmpromp_ppl.inference.init import init_state
+from lmpromp_ppl.inference.cavi import init_state
 from lmpromp_ppl.inference.svi import (
     cavi_state_from_meanfield,
     make_guide,

@@ -47,11 +47,12 @@ def _sweep(spec: Mapping[str, Any]) -> dict:
 def _vsbc_numpyro(spec: Mapping[str, Any]) -> dict:
     import jax
 
-    from lmpromp_ppl.calibration.sbc import SbcProblem
+    from lmpromp_ppl.calibration.sbc import SbcProblem, design
     from lmpromp_ppl.calibration.vsbc import numpyro_vsbc
 
     problem = SbcProblem.from_dict(spec["problem"])
-    out = numpyro_vsbc(problem, jax.random.key(int(spec["seed"])), **dict(spec.get("options") or {}))
+    out = numpyro_vsbc(problem.model, design(problem), problem.hyper(), jax.random.key(int(spec["seed"])),
+                       **dict(spec.get("options") or {}))
     return {"model": problem.model, **out}
 
 

@@ -15,7 +15,7 @@ determined only up to a rotation of the latent space, eq. 4.1):
 * LMProMP: ``alpha``, the components of ``b``, the eigenvalues ``gram_eig`` of
   :math:`M M^T` (descending) and the mean ``pred_mean`` and s.d. ``pred_sd``
   of the movement distribution of a new demonstration at fixed phases
-  (:func:`lmpromp_ppl.diagnostics.quantities.trajectory_moments`);
+  (:func:`lmpromp_ppl.quantities.trajectory_moments`);
 * ProMP: the components of ``mu_w``, ``pred_mean`` and ``pred_sd``.
 
 Datasets are simulated from the model with the SIMULATION hyperparameters
@@ -55,8 +55,9 @@ import numpy as np
 from lmpromp_ppl.basis import design_matrix
 from lmpromp_ppl.calibration.vsbc import vsbc_probabilities, vsbc_test
 from lmpromp_ppl.data.core import ModelData
-from lmpromp_ppl.diagnostics.quantities import gram_eigenvalues, trajectory_moments
+from lmpromp_ppl.quantities import gram_eigenvalues, trajectory_moments
 from lmpromp_ppl.errors import LmprompError
+from lmpromp_ppl.inference import registry
 from lmpromp_ppl.models.hyper import Hyperparameters, preset
 
 __all__ = [
@@ -77,11 +78,12 @@ __all__ = [
     "summarize",
 ]
 
-ENGINES = ("cavi", "nuts", "svi_meanfield", "svi_autonormal", "svi_lowrank")
-MODEL_ENGINES = {
-    "lmpromp": ("cavi", "nuts", "svi_meanfield", "svi_autonormal", "svi_lowrank"),
-    "promp": ("nuts", "svi_autonormal", "svi_lowrank"),
-}
+#: The engines SBC runs (every engine of :mod:`lmpromp_ppl.inference.registry`).
+ENGINES = registry.ENGINES
+#: The simulated problems' models and the engines offered for each (the registry's pairs).
+MODEL_ENGINES = {model: registry.engines_for(model) for model in ("lmpromp", "promp")}
+#: Fixed per-engine stream numbers of the replicates' keys (independent of the order of ENGINES).
+_KEY_STREAM = {"cavi": 0, "nuts": 1, "svi_meanfield": 2, "svi_autonormal": 3, "svi_lowrank": 4}
 
 DEFAULT_ENGINES = {
     "lmpromp": ("cavi", "nuts", "svi_meanfield"),
@@ -304,7 +306,7 @@ def sbc_task(spec: Mapping[str, Any]) -> dict[str, Any]:
     ----------
     spec : ``{"problem": SbcProblem.to_dict(), "engine": str, "seed": int,
         "indices": [int, ...], "options": {...}}``; CAVI fits all ``indices``
-        in one :func:`lmpromp_ppl.inference.batch.fit_cavi_batched` call, the
+        in one :func:`lmpromp_ppl.inference.cavi.fit_cavi_batched` call, the
         other engines fit them one after another (one index per task by default)
 
     Returns
@@ -321,11 +323,11 @@ def sbc_task(spec: Mapping[str, Any]) -> dict[str, Any]:
         )
     indices = [int(i) for i in spec["indices"]]
     options = dict(spec.get("options") or {})
-    engine_id = ENGINES.index(engine)
+    engine_id = _KEY_STREAM[engine]
     simulated = [simulate_replicate(problem, seed, i) for i in indices]
     records = []
     if engine == "cavi":
-        from lmpromp_ppl.inference.batch import fit_cavi_batched, sample_q_batched
+        from lmpromp_ppl.inference.cavi import fit_cavi_batched, sample_q_batched
 
         options = {"tol": 1e-8, "max_iter": 2000, **options}
         fit = fit_cavi_batched([data for _, data in simulated], problem.hyper(), **options)

@@ -153,7 +153,7 @@ def sweep_task(spec: Mapping[str, Any]) -> dict[str, Any]:
     spec : ``{"dataset": str, "params": {name: value}, "preset": str,
         "num_basis": int, "test_fraction": float, "seed": int, "options": {...}}``
         (``params`` may override ``num_basis``; ``options`` go to
-        :func:`~lmpromp_ppl.inference.cavi.fit_cavi`)
+        :func:`~lmpromp_ppl.inference.cavi.fit`)
 
     Returns
     -------
@@ -161,9 +161,8 @@ def sweep_task(spec: Mapping[str, Any]) -> dict[str, Any]:
     """
     import jax
 
-    from lmpromp_ppl.data import load_dataset
-    from lmpromp_ppl.data.core import model_data, standardize
-    from lmpromp_ppl.inference.cavi import fit_cavi, point_estimate
+    from lmpromp_ppl.data import load_dataset, prepare_dataset
+    from lmpromp_ppl.inference import cavi
     from lmpromp_ppl.models.hyper import preset
 
     params = dict(spec["params"])
@@ -173,11 +172,11 @@ def sweep_task(spec: Mapping[str, Any]) -> dict[str, Any]:
     hyper = preset(spec.get("preset", "default"), **params)
     demos = load_dataset(spec["dataset"])
     train_idx, test_idx = split_demos(demos.num_demos, float(spec.get("test_fraction", 0.25)), int(spec.get("seed", 0)))
-    train, scaling = standardize(demos.subset(train_idx))
-    test, _ = standardize(demos.subset(test_idx), scaling)
-    fit = fit_cavi(model_data(train, num_basis), hyper, jax.random.key(int(spec.get("seed", 0))),
+    train = prepare_dataset(demos.subset(train_idx), num_basis)
+    test = prepare_dataset(demos.subset(test_idx), num_basis, scaling=train.scaling)
+    fit = cavi.fit(train.model_data, hyper, jax.random.key(int(spec.get("seed", 0))),
                    **dict(spec.get("options") or {}))
-    scores = heldout_scores(point_estimate(fit.state), model_data(test, num_basis), hyper, demos.num_dofs)
+    scores = heldout_scores(cavi.point_estimate(fit.state), test.model_data, hyper, demos.num_dofs)
     return {"params": dict(spec["params"]), "heldout": scores, "elbo": fit.elbo, "converged": fit.converged,
             "iterations": fit.iterations, "seconds": fit.seconds, "num_train": int(train_idx.size),
             "num_test": int(test_idx.size)}

@@ -58,7 +58,9 @@ def vsbc_test(probabilities: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def numpyro_vsbc(
-    problem,
+    model_name: str,
+    data,
+    hyper,
     key: jax.Array,
     *,
     num_simulations: int = 20,
@@ -70,7 +72,9 @@ def numpyro_vsbc(
 
     Parameters
     ----------
-    problem : :class:`lmpromp_ppl.calibration.sbc.SbcProblem` (design and SIMULATION prior)
+    model_name : ``"lmpromp"`` or ``"promp"`` (the SBC problem's model)
+    data : the problem's design (:func:`lmpromp_ppl.calibration.sbc.design`), :class:`ModelData`
+    hyper : the problem's hyperparameters (the SIMULATION prior)
     key : PRNG key
     num_simulations, num_svi_steps, num_samples : as in ``vsbc_diagnostic``
         (a fixed number of Adam steps per simulated dataset)
@@ -87,11 +91,10 @@ def numpyro_vsbc(
     from numpyro.infer.calibration import vsbc_diagnostic
     from numpyro.optim import Adam
 
-    from lmpromp_ppl.calibration.sbc import design
     from lmpromp_ppl.data.core import ModelData
     from lmpromp_ppl.models.collapsed import lmpromp_collapsed_model, promp_collapsed_model
 
-    if problem.model == "lmpromp":
+    if model_name == "lmpromp":
         model = partial(lmpromp_collapsed_model, collapse_h=True)
     else:
         model = promp_collapsed_model
@@ -105,7 +108,7 @@ def numpyro_vsbc(
     if jax.dtypes.issubdtype(key.dtype, jax.dtypes.prng_key):
         key = jax.random.key_data(key)  # numpyro's diagnostic splits raw uint32 keys
     result = vsbc_diagnostic(
-        key, model, AutoNormal(model), Adam(learning_rate), Trace_ELBO(), design(problem), problem.hyper(),
+        key, model, AutoNormal(model), Adam(learning_rate), Trace_ELBO(), data, hyper,
         observed_sites=["y"], simulated_data_to_args=simulated_data_to_args,
         num_simulations=int(num_simulations), num_svi_steps=int(num_svi_steps), num_samples=int(num_samples),
     )

@@ -54,8 +54,7 @@ def convergence_note(result, messages: list[str]) -> str:
 
         from lmpromp_ppl.inference import cavi
 
-        fit_fn = cavi.fit_cavi_mixture if result.model == "mixture" else cavi.fit_cavi
-        tol = result.options.get("tol", inspect.signature(fit_fn).parameters["tol"].default)
+        tol = result.options.get("tol", inspect.signature(cavi.fit).parameters["tol"].default)
         trace = s.get("elbo_trace") or []
         unit = "sweep" if n == 1 else "sweeps"
         if len(trace) >= 2 and trace[-1] != 0:

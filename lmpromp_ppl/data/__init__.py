@@ -3,6 +3,7 @@
 from lmpromp_ppl.data.core import Demonstrations, ModelData, Scaling, model_data, standardize
 from lmpromp_ppl.data.files import load_csv, load_npz, save_csv, save_npz
 from lmpromp_ppl.data.lasa import lasa_shapes, load_lasa
+from lmpromp_ppl.data.prepared import PreparedDataset, load_demonstrations, prepare_dataset
 from lmpromp_ppl.data.registry import list_datasets, load_dataset
 from lmpromp_ppl.data.synthetic import (
     count_collisions,
@@ -18,6 +19,9 @@ __all__ = [
     "Scaling",
     "model_data",
     "standardize",
+    "PreparedDataset",
+    "prepare_dataset",
+    "load_demonstrations",
     "load_dataset",
     "list_datasets",
     "load_npz",

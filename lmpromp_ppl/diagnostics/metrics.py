@@ -55,9 +55,9 @@ __all__ = [
     "pareto_khat",
     "khat_verdict",
     "reference_reliability",
+    "quantity_reliability",
     "RHAT_MAX",
     "ESS_MIN",
-    "cavi_log_q",
     "model_log_joint",
     "engine_khat",
 ]
@@ -277,24 +277,19 @@ def khat_verdict(khat: float | None) -> str:
     return "unreliable"
 
 
-def reference_reliability(
-    quantities: Mapping[str, np.ndarray], divergences: int | None = None
-) -> dict:
-    """R-hat, bulk and tail ESS of the reference on each quantity, and a verdict.
+def quantity_reliability(quantities: Mapping[str, np.ndarray]) -> dict[str, dict]:
+    """Worst rank-normalised split R-hat and smallest bulk and tail ESS per quantity (arviz-stats).
 
     Parameters
     ----------
-    quantities : name -> (chain, draw, ...) draws of identifiable quantities
-        (mixture components already relabelled)
-    divergences : number of divergent transitions (None if unknown)
+    quantities : name -> (chain, draw, ...) draws (e.g.
+        :func:`lmpromp_ppl.quantities.invariant_quantities`)
 
     Returns
     -------
-    dict with ``rhat_max``, ``ess_bulk_min``, ``ess_tail_min``,
-    ``divergences``, ``per_quantity`` ({name: {rhat_max, ess_bulk_min,
-    ess_tail_min}}) and ``problems`` (a list of plain-words sentences, empty
-    when the reference meets R-hat <= 1.01, ESS >= 400 and no divergences).
-    Elements that are constant across all draws are skipped.
+    name -> ``{"rhat_max", "ess_bulk_min", "ess_tail_min"}`` (Vehtari et al. 2021);
+    elements constant across all draws are skipped, and a quantity with none left
+    (or fewer than 4 draws per chain) gets ``None`` values.
     """
     from arviz_stats.base import array_stats
 
@@ -318,6 +313,29 @@ def reference_reliability(
             "ess_bulk_min": _finite_or_none(np.nanmin(bulk)) if np.any(np.isfinite(bulk)) else None,
             "ess_tail_min": _finite_or_none(np.nanmin(tail)) if np.any(np.isfinite(tail)) else None,
         }
+    return per
+
+
+def reference_reliability(
+    quantities: Mapping[str, np.ndarray], divergences: int | None = None
+) -> dict:
+    """R-hat, bulk and tail ESS of the reference on each quantity, and a verdict.
+
+    Parameters
+    ----------
+    quantities : name -> (chain, draw, ...) draws of identifiable quantities
+        (mixture components already relabelled)
+    divergences : number of divergent transitions (None if unknown)
+
+    Returns
+    -------
+    dict with ``rhat_max``, ``ess_bulk_min``, ``ess_tail_min``,
+    ``divergences``, ``per_quantity`` ({name: {rhat_max, ess_bulk_min,
+    ess_tail_min}}) and ``problems`` (a list of plain-words sentences, empty
+    when the reference meets R-hat <= 1.01, ESS >= 400 and no divergences).
+    Elements that are constant across all draws are skipped.
+    """
+    per = quantity_reliability(quantities)
 
     def overall(key, fn):
         values = [v[key] for v in per.values() if v[key] is not None]
@@ -347,51 +365,6 @@ def reference_reliability(
 
 
 # --------------------------------------------------------------------------- importance ratios of fitted engines
-def _gaussian_logpdf_chol(x, mean, chol):
-    """log N(x; mean, L L^T) with the Cholesky factor ``chol`` (..., n, n)."""
-    import jax.numpy as jnp
-    from jax.scipy.linalg import solve_triangular
-
-    diff = x - mean
-    z = solve_triangular(chol, diff[..., None], lower=True)[..., 0]
-    n = x.shape[-1]
-    logdet = jnp.sum(jnp.log(jnp.diagonal(chol, axis1=-2, axis2=-1)), axis=-1)
-    return -0.5 * jnp.sum(z**2, axis=-1) - logdet - 0.5 * n * jnp.log(2 * jnp.pi)
-
-
-def cavi_log_q(state, draws: Mapping[str, np.ndarray]) -> np.ndarray:
-    r"""log q(theta) of the single-type CAVI family (thesis eq. 4.3) at draws (n, ...).
-
-    :math:`q = \prod_i \mathcal N(\mathbf w_i)\,\mathcal N(\mathbf h_i)\;
-    \mathcal N(\mathbf b | \mu_b, \sigma_b I) \prod_v \mathcal N(\mathbf m_v | \mu_{m_v}, \sigma_{m_v} I)\;
-    \Gamma(\alpha | \bar a, \bar b) \prod_v \Gamma(\lambda_v | \bar c_v, \bar d_v)`
-    with the parameters of :class:`lmpromp_ppl.inference.cavi.CaviState`.
-    """
-    import jax.numpy as jnp
-    from jax.scipy.stats import gamma as jgamma
-    from jax.scipy.stats import norm as jnorm
-
-    from lmpromp_ppl.inference.cavi import EigenCovariance
-    from lmpromp_ppl.inference.cavi_mixture import MixtureState, log_q
-
-    if isinstance(state, MixtureState):  # mixture, row-wise family or learned beta
-        return np.asarray(log_q(state, {k: jnp.asarray(v) for k, v in draws.items()}))
-    w, h, b, M = (jnp.asarray(draws[k]) for k in ("w", "h", "b", "M"))
-    alpha, lam = jnp.asarray(draws["alpha"]), jnp.asarray(draws["lam"])
-    cov = state.w_cov
-    if isinstance(cov, EigenCovariance):
-        z = (w - state.w_mean) @ cov.basis  # coordinates in the eigenbasis
-        log_w = jnp.sum(jnorm.logpdf(z, 0.0, jnp.sqrt(cov.variances)), axis=(-2, -1))
-    else:
-        log_w = jnp.sum(_gaussian_logpdf_chol(w, state.w_mean, jnp.linalg.cholesky(cov.matrices)), axis=-1)
-    log_h = jnp.sum(_gaussian_logpdf_chol(h, state.h_mean, jnp.linalg.cholesky(state.h_cov)), axis=-1)
-    log_b = jnp.sum(jnorm.logpdf(b, state.b_mean, jnp.sqrt(state.b_var)), axis=-1)
-    log_M = jnp.sum(jnorm.logpdf(M, state.M_mean, jnp.sqrt(state.M_var)), axis=(-2, -1))
-    log_alpha = jgamma.logpdf(alpha * state.alpha_rate, state.alpha_shape) + jnp.log(state.alpha_rate)
-    log_lam = jnp.sum(jgamma.logpdf(lam * state.lam_rate, state.lam_shape) + jnp.log(state.lam_rate), axis=-1)
-    return np.asarray(log_w + log_h + log_b + log_M + log_alpha + log_lam)
-
-
 def model_log_joint(model_fn, args: tuple, draws: Mapping[str, np.ndarray]) -> np.ndarray:
     """log p(theta, y) of a NumPyro model at each of n draws (``numpyro.infer.util.log_density``)."""
     import jax
@@ -406,34 +379,6 @@ def model_log_joint(model_fn, args: tuple, draws: Mapping[str, np.ndarray]) -> n
     return np.asarray(jax.jit(jax.vmap(one))(params))
 
 
-def _svi_log_ratios(svi_result, key, num_draws: int) -> tuple[np.ndarray, tuple]:
-    """log p - log q for ``num_draws`` particles of an SVI guide, and (model, guide, params, args)."""
-    import jax
-    import jax.numpy as jnp
-    from numpyro.handlers import seed
-    from numpyro.infer.elbo import get_importance_log_probs
-
-    from lmpromp_ppl.inference.svi import make_guide
-
-    ctx = svi_result.context
-    model, guide = make_guide(ctx.guide, ctx.model_name, ctx.data, ctx.hyper, collapsed=ctx.spec,
-                              rank=ctx.rank, fixed_names=tuple(sorted(ctx.fixed)))
-    params = {k: jnp.asarray(v) for k, v in svi_result.params.items()}
-    args = (ctx.data, ctx.fixed)
-    # An autoguide sets itself up on its first call by running the model under the
-    # enclosing seed handler, which would shift the particles of that first call;
-    # set it up here so every call with a key draws the same particles.
-    get_importance_log_probs(seed(model, 0), seed(guide, 0), args, {}, params)
-
-    def one(k):
-        k_model, k_guide = jax.random.split(k)
-        lp_model, lp_guide = get_importance_log_probs(seed(model, k_model), seed(guide, k_guide), args, {}, params)
-        return sum(v.sum() for v in lp_model.values()) - sum(v.sum() for v in lp_guide.values())
-
-    log_ratio = jax.jit(jax.vmap(one))(jax.random.split(key, num_draws))
-    return np.asarray(log_ratio), (model, guide, params, args)
-
-
 def engine_khat(result, data, key, num_draws: int = 1000) -> dict:
     r"""Pareto :math:`\hat k` of a VI :class:`~lmpromp_ppl.results.FitResult` (Yao et al. 2018).
 
@@ -442,7 +387,7 @@ def engine_khat(result, data, key, num_draws: int = 1000) -> dict:
 
     * ``cavi``: the full declared model (:func:`lmpromp_ppl.models.lmpromp.lmpromp_model`
       through ``numpyro.infer.util.log_density``) and the closed-form log density of
-      the CAVI factors (:func:`cavi_log_q`);
+      the CAVI factors (the result's ``log_density``);
     * ``svi_*``: the guide's own model (collapsed over ``w`` for the automatic
       guides, where ``w`` given theta is exact and cancels from the ratio),
       through numpyro's importance traces; numpyro's ``psis_diagnostic`` on the
@@ -464,24 +409,23 @@ def engine_khat(result, data, key, num_draws: int = 1000) -> dict:
     engine = result.engine
     key_q = key
     if engine == "cavi":
-        from lmpromp_ppl.inference.cavi import sample_q
         from lmpromp_ppl.models.lmpromp import lmpromp_model
         from lmpromp_ppl.models.mixture import mixture_model
 
         if result.model == "mixture" and not bool(np.all(np.asarray(result.state.active))):
             out["note"] = "q has no factor for the removed mixture components, so log p - log q is not defined"
             return out
-        draws = {k: np.asarray(v) for k, v in sample_q(key_q, result.state, num_draws).items()}
+        draws = {k: np.asarray(v) for k, v in result.sampler(key_q, num_draws).items()}
         if result.model == "mixture":  # the explicit (z sampled) mixture, as q has a factor q(z)
             target = (mixture_model, (data, result.hyper, False))
         else:
             target = (lmpromp_model, (data, result.hyper))
-        log_ratio = model_log_joint(*target, draws) - cavi_log_q(result.state, draws)
+        log_ratio = model_log_joint(*target, draws) - np.asarray(result.log_density(draws))
     elif engine.startswith("svi_"):
         if not hasattr(result.state, "context"):
             out["note"] = "the SVI result does not carry its guide parameters"
             return out
-        log_ratio, (model, guide, params, args) = _svi_log_ratios(result.state, key_q, num_draws)
+        log_ratio, (model, guide, params, args) = result.state.importance_log_ratios(key_q, num_draws)
         from numpyro.infer import psis_diagnostic
 
         with warnings.catch_warnings():

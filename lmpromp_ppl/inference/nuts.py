@@ -25,7 +25,7 @@ parametrisation (``collapsed="auto"``, ``noncentered=True``) is
   conditional :math:`p(\mathbf w_i | \theta, \mathbf y_i)` and ``h`` from
   :math:`p(\mathbf h_i | \mathbf w_i, \theta)` once per posterior draw, so
   every result still has the sites ``w`` and ``h``.  ``collapsed="w"``
-  integrates out ``w`` only (``h`` sampled), ``collapsed=False`` samples the
+  integrates out ``w`` only (``h`` sampled), ``collapsed="none"`` samples the
   full model; the ProMP has no ``h`` and uses ``"w"``;
 * **non-centred projection**: the columns
   :math:`\mathbf m_v \sim \mathcal N(\mathbf 0, \lambda_v^{-1} I)` are sampled
@@ -58,7 +58,7 @@ collapsed, M           R-hat max    bulk ESS min     tail ESS min     tree depth
 so ``"wh"`` with a non-centred ``M`` is the default; ``tests/test_nuts_reliability.py``
 (marked ``slow``) asserts R-hat <= 1.01 and bulk ESS >= 400 for it.
 Identifiable quantities: ``b``, ``alpha``, ``lam`` sorted, and the
-eigenvalues of :math:`\mathbf M \mathbf M^T` (:func:`identifiable_quantities`);
+eigenvalues of :math:`\mathbf M \mathbf M^T` (:func:`lmpromp_ppl.quantities.invariant_quantities`);
 ``M`` and ``h`` are identified only up to a rotation and sign of the latent
 space, so their R-hat means nothing.
 
@@ -92,25 +92,18 @@ from numpyro.infer.initialization import init_to_uniform, init_to_value
 from numpyro.infer.reparam import LocScaleReparam
 from numpyro.infer.util import ParamInfo, initialize_model
 
+from lmpromp_ppl._keys import raw_key
 from lmpromp_ppl.data.core import ModelData
 from lmpromp_ppl.errors import LmprompError
+from lmpromp_ppl.models.conditionals import draw_integrated_sites
 from lmpromp_ppl.models.hyper import Hyperparameters
-from lmpromp_ppl.models import collapsed as collapsed_models
-from lmpromp_ppl.models.lmpromp import lmpromp_model
-from lmpromp_ppl.models.mixture import mixture_model
-from lmpromp_ppl.models.promp import promp_model
+from lmpromp_ppl.models.registry import model_function, resolve_collapse
 
 __all__ = [
-    "MODEL_NAMES",
     "NutsResult",
-    "model_function",
-    "posterior_conditional_draws",
     "run_nuts",
-    "identifiable_quantities",
-    "reliability",
 ]
 
-MODEL_NAMES = ("promp", "lmpromp", "mixture")
 _STAT_NAMES = ("diverging", "tree_depth", "step_size", "accept_prob", "energy", "num_steps")
 
 
@@ -139,50 +132,7 @@ class NutsResult(NamedTuple):
     options: dict[str, Any]
 
 
-def _collapse_spec(model_name: str, collapsed: bool | str) -> str:
-    """Normalise ``collapsed`` to ``""`` (full model), ``"w"`` or ``"wh"``.
-
-    ``"auto"`` is the measured reliable choice (module docstring): ``"wh"`` for
-    the LMProMP and the mixture, ``"w"`` for the ProMP (which has no ``h``).
-    """
-    if model_name not in MODEL_NAMES:
-        raise LmprompError(f"unknown model {model_name!r}; choose from {list(MODEL_NAMES)}")
-    if collapsed == "auto":
-        return "w" if model_name == "promp" else "wh"
-    if collapsed is True:
-        collapsed = "w"
-    if collapsed is False or collapsed in ("", "none"):
-        return ""
-    if collapsed not in ("w", "wh"):
-        raise LmprompError(f"collapsed must be 'auto', False, True, 'w' or 'wh', got {collapsed!r}")
-    if collapsed == "wh" and model_name == "promp":
-        raise LmprompError("the ProMP model has no control variables h; use collapsed='w'")
-    return collapsed
-
-
-def model_function(model_name: str, collapsed: bool | str) -> Callable[..., None]:
-    """The NumPyro model ``model(data, hyper)`` for a model name and collapse choice.
-
-    Parameters
-    ----------
-    model_name : ``"promp"``, ``"lmpromp"`` or ``"mixture"`` (assignments summed out)
-    collapsed : ``False`` (full model), ``True``/``"w"`` (w integrated out) or
-        ``"wh"`` (w and h integrated out)
-    """
-    spec = _collapse_spec(model_name, collapsed)
-    if spec == "":
-        if model_name == "mixture":
-            return lambda data, hyper: mixture_model(data, hyper, marginalize=True)
-        return {"promp": promp_model, "lmpromp": lmpromp_model}[model_name]
-    if model_name == "promp":
-        return collapsed_models.promp_collapsed_model
-    collapse_h = spec == "wh"
-    fn = {"lmpromp": collapsed_models.lmpromp_collapsed_model,
-          "mixture": collapsed_models.mixture_collapsed_model}[model_name]
-    return lambda data, hyper: fn(data, hyper, collapse_h=collapse_h)
-
-
-def _noncentered_sites(model_name: str, spec: str, fixed_names: tuple[str, ...]) -> tuple[str, ...]:
+def _noncentered_sites(model_name: str, collapse: str, fixed_names: tuple[str, ...]) -> tuple[str, ...]:
     """Sites sampled non-centred: ``M`` (given ``lam``), and ``w`` in the full LMProMP.
 
     The ProMP's ``w`` is multivariate normal and the mixture's ``w`` a mixture,
@@ -190,14 +140,14 @@ def _noncentered_sites(model_name: str, spec: str, fixed_names: tuple[str, ...])
     """
     if model_name == "promp":
         return ()
-    sites = ("M", "w") if (spec == "" and model_name == "lmpromp") else ("M",)
+    sites = ("M", "w") if (collapse == "none" and model_name == "lmpromp") else ("M",)
     return tuple(s for s in sites if s not in fixed_names)
 
 
-def _wrapped_model(model_name: str, spec: str, hyper: Hyperparameters,
+def _wrapped_model(model_name: str, collapse: str, hyper: Hyperparameters,
                    noncentered: tuple[str, ...]) -> Callable[[ModelData, dict], None]:
     """``model(data, fixed)``: the declared model, non-centred and conditioned on ``fixed``."""
-    base = model_function(model_name, spec)
+    base = model_function(model_name, collapse)
     config = {name: LocScaleReparam(centered=0) for name in noncentered}
 
     def model(data: ModelData, fixed: dict) -> None:
@@ -207,38 +157,11 @@ def _wrapped_model(model_name: str, spec: str, hyper: Hyperparameters,
     return model
 
 
-def posterior_conditional_draws(model_name: str, spec: str, key: jax.Array, data: ModelData,
-                                hyper: Hyperparameters, params: dict) -> dict:
-    r"""Draw the integrated-out sites for a batch of posterior draws.
-
-    Parameters
-    ----------
-    model_name, spec : model and collapse specification (``"w"`` or ``"wh"``)
-    key : PRNG key
-    data : model inputs
-    hyper : hyperparameters
-    params : site name -> (N, ...) constrained draws of the sampled (and fixed) sites
-
-    Returns
-    -------
-    dict with ``w`` (N, L, d) drawn from :math:`p(\mathbf w_i | \theta, \mathbf y_i)`,
-    and, when ``spec == "wh"``, ``h`` (N, L, [K,] V) drawn from
-    :math:`p(\mathbf h_i | \mathbf w_i, \theta)`, so that ``(w, h)`` is a draw of
-    their joint conditional (:mod:`lmpromp_ppl.models.collapsed`).
-    """
-    key_w, key_h = jax.random.split(key)
-    w = collapsed_models.sample_w_given_theta(key_w, data, hyper, params, model=model_name)
-    out = {"w": w}
-    if spec == "wh":
-        out["h"] = collapsed_models.sample_h_given_theta(key_h, hyper, dict(params, w=w), model=model_name)
-    return out
-
-
 class _Config(NamedTuple):
     """Static configuration of one compiled NUTS program (a cache key)."""
 
     model_name: str
-    spec: str
+    collapse: str
     hyper: Hyperparameters
     noncentered: tuple[str, ...]
     num_chains: int
@@ -255,7 +178,7 @@ _PROGRAMS: dict[tuple, Callable] = {}
 
 def _build_program(config: _Config) -> Callable:
     """The pure function ``(key, data, fixed, init_values) -> (samples, stats)``."""
-    model = _wrapped_model(config.model_name, config.spec, config.hyper, config.noncentered)
+    model = _wrapped_model(config.model_name, config.collapse, config.hyper, config.noncentered)
 
     def program(key, data, fixed, init_values):
         key_init, key_chains, key_cond = jax.random.split(key, 3)
@@ -300,25 +223,18 @@ def _build_program(config: _Config) -> Callable:
         else:
             samples, stats = lax.map(one_chain, args)
         samples = {k: v for k, v in samples.items() if not k.endswith("_decentered")}
-        if config.spec:
+        if config.collapse != "none":
             flat = {k: v.reshape((-1,) + v.shape[2:]) for k, v in samples.items()}
             num_flat = config.num_chains * config.num_samples
             flat.update({k: jnp.broadcast_to(v, (num_flat,) + jnp.shape(v)) for k, v in fixed.items()})
-            extra = posterior_conditional_draws(
-                config.model_name, config.spec, key_cond, data, config.hyper, flat
+            extra = draw_integrated_sites(
+                config.model_name, config.collapse, key_cond, data, config.hyper, flat
             )
             samples.update({k: v.reshape((config.num_chains, config.num_samples) + v.shape[1:])
                             for k, v in extra.items()})
         return samples, stats
 
     return program
-
-
-def _raw_key(key: jax.Array) -> jax.Array:
-    """A raw uint32 key from either a typed (``jax.random.key``) or raw key."""
-    if jnp.issubdtype(key.dtype, jax.dtypes.prng_key):
-        return jax.random.key_data(key)
-    return key
 
 
 def _check_positive_int(name: str, value, minimum: int = 1) -> int:
@@ -333,7 +249,7 @@ def run_nuts(
     hyper: Hyperparameters,
     key: jax.Array,
     *,
-    collapsed: bool | str = "auto",
+    collapsed: str = "auto",
     noncentered: bool = True,
     num_chains: int = 2,
     num_warmup: int = 500,
@@ -357,8 +273,8 @@ def run_nuts(
     collapsed : ``"auto"`` (default: ``"wh"``, or ``"w"`` for the ProMP),
         ``"w"`` (w integrated out, then drawn from :math:`p(\mathbf w | \theta,
         \mathbf y)`), ``"wh"`` (w and h integrated out, then drawn from
-        :math:`p(\mathbf w, \mathbf h | \theta, \mathbf y)`), or ``False``
-        (the full model)
+        :math:`p(\mathbf w, \mathbf h | \theta, \mathbf y)`), or ``"none"``
+        (the full model); see :data:`lmpromp_ppl.models.registry.COLLAPSE_CHOICES`
     noncentered : sample ``M`` (and ``w`` in the full model) non-centred
     num_chains, num_warmup, num_samples : chains, warm-up and kept draws per chain
     target_accept : target acceptance probability of the step-size adaptation
@@ -379,7 +295,7 @@ def run_nuts(
     NutsResult
     """
     del progress  # one compiled program: nothing to report while it runs
-    spec = _collapse_spec(model_name, collapsed)
+    collapse = resolve_collapse(model_name, collapsed)
     num_chains = _check_positive_int("num_chains", num_chains)
     num_warmup = _check_positive_int("num_warmup", num_warmup, 0)
     num_samples = _check_positive_int("num_samples", num_samples)
@@ -395,7 +311,7 @@ def run_nuts(
     init_values = {k: jnp.asarray(v, dtype=jnp.float64) for k, v in (init_values or {}).items()}
     # run the model once on the concrete data: shape and value errors surface
     # here with their own message, not inside tracing
-    trace = handlers.trace(handlers.seed(model_function(model_name, spec), 0)).get_trace(data, hyper)
+    trace = handlers.trace(handlers.seed(model_function(model_name, collapse), 0)).get_trace(data, hyper)
     latent = {n for n, s in trace.items() if s["type"] == "sample" and not s["is_observed"]}
     for what, values in (("fixed", fixed), ("init_values", init_values)):
         unknown = set(values) - latent
@@ -407,12 +323,12 @@ def run_nuts(
                     f"{what}[{name!r}] has shape {value.shape}, expected {trace[name]['value'].shape}"
                 )
     config = _Config(
-        model_name, spec, hyper,
-        _noncentered_sites(model_name, spec, tuple(sorted(fixed))) if noncentered else (),
+        model_name, collapse, hyper,
+        _noncentered_sites(model_name, collapse, tuple(sorted(fixed))) if noncentered else (),
         num_chains, num_warmup, num_samples, float(target_accept), max_tree_depth,
         bool(dense_mass), chain_method,
     )
-    args = (_raw_key(key), data, fixed, init_values)
+    args = (raw_key(key), data, fixed, init_values)
     cache_key = (config, jax.tree_util.tree_structure(args),
                  tuple((a.shape, a.dtype) for a in jax.tree_util.tree_leaves(args)))
     start = time.perf_counter()
@@ -425,7 +341,7 @@ def run_nuts(
     samples, stats = jax.block_until_ready(compiled(*args))
     seconds = time.perf_counter() - start
     options = {
-        "collapsed": spec or "none", "noncentered": list(config.noncentered),
+        "collapsed": collapse, "noncentered": list(config.noncentered),
         "num_chains": num_chains, "num_warmup": num_warmup, "num_samples": num_samples,
         "target_accept": float(target_accept), "max_tree_depth": max_tree_depth,
         "dense_mass": bool(dense_mass), "chain_method": chain_method,
@@ -438,52 +354,3 @@ def run_nuts(
         compile_seconds=compile_seconds,
         options=options,
     )
-
-
-def identifiable_quantities(samples: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
-    r"""Quantities that do not depend on the latent rotation or on column order.
-
-    Parameters
-    ----------
-    samples : site name -> (..., site shape) draws of a single-type LMProMP
-
-    Returns
-    -------
-    dict with ``b`` (..., d), ``alpha`` (...), ``lam_sorted`` (..., V),
-    ascending, and ``gram_eig`` (..., V), the eigenvalues of
-    :math:`\mathbf M \mathbf M^T`, descending.
-    """
-    M = np.asarray(samples["M"])
-    gram = np.einsum("...dv,...du->...vu", M, M)
-    return {
-        "b": np.asarray(samples["b"]),
-        "alpha": np.asarray(samples["alpha"]),
-        "lam_sorted": np.sort(np.asarray(samples["lam"]), axis=-1),
-        "gram_eig": np.clip(np.linalg.eigvalsh(gram)[..., ::-1], 0.0, None),
-    }
-
-
-def reliability(quantities: Mapping[str, np.ndarray]) -> dict[str, dict[str, float]]:
-    """Worst rank-normalised split R-hat and smallest bulk and tail ESS per quantity.
-
-    Parameters
-    ----------
-    quantities : name -> (chain, draw, ...) draws (e.g. :func:`identifiable_quantities`)
-
-    Returns
-    -------
-    name -> ``{"rhat_max", "ess_bulk_min", "ess_tail_min"}`` (arviz-stats,
-    rank-normalised split R-hat and ESS of Vehtari et al. 2021)
-    """
-    import arviz_stats
-
-    out = {}
-    for name, draws in quantities.items():
-        x = np.asarray(draws, dtype=float)
-        x = x.reshape(x.shape[:2] + (-1,))
-        x = np.moveaxis(x, -1, 0)  # (element, chain, draw)
-        rhat = [float(arviz_stats.rhat(e, chain_axis=0, draw_axis=1)) for e in x]
-        bulk = [float(arviz_stats.ess(e, method="bulk", chain_axis=0, draw_axis=1)) for e in x]
-        tail = [float(arviz_stats.ess(e, method="tail", prob=(0.05, 0.95), chain_axis=0, draw_axis=1)) for e in x]
-        out[name] = {"rhat_max": max(rhat), "ess_bulk_min": min(bulk), "ess_tail_min": min(tail)}
-    return out

@@ -32,7 +32,7 @@ The automatic guides run, by default, on the model **collapsed over w**
 NUTS samples: a guide then approximates only :math:`p(\theta, \mathbf h | \mathbf y)`
 and ``w`` is drawn from the exact conditional :math:`p(\mathbf w | \theta,
 \mathbf y)` for every draw from q (see :meth:`SviResult.sample`).
-``collapsed=False`` puts them on the full model.
+``collapsed="none"`` puts them on the full model.
 
 Step size, plateaus and stopping rule
 -------------------------------------
@@ -75,29 +75,35 @@ of the chunk (cached per static configuration); ``seconds`` the optimisation.
 
 from __future__ import annotations
 
-import sys
 import time
 import warnings
 from functools import partial
-from typing import Any, Callable, Mapping, NamedTuple
+from typing import Any, Mapping, NamedTuple
 
-import numpy as np
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import Array, lax
-import numpyro
-import numpyro.distributions as dist
 from numpyro import handlers
-from numpyro.distributions import constraints
 from numpyro.infer import SVI, Predictive, Trace_ELBO
-from numpyro.infer.autoguide import AutoLowRankMultivariateNormal, AutoNormal
 from numpyro.optim import _NumPyroOptim
 
+from lmpromp_ppl._keys import raw_key
+from lmpromp_ppl._progress import line_reporter
 from lmpromp_ppl.data.core import ModelData
 from lmpromp_ppl.errors import ConvergenceWarning, LmprompError
-from lmpromp_ppl.inference.nuts import _collapse_spec, _raw_key, model_function, posterior_conditional_draws
+from lmpromp_ppl.inference.svi_guides import (
+    GUIDES,
+    cavi_state_from_meanfield,
+    make_guide,
+    meanfield_guide,
+    meanfield_init,
+    meanfield_params_from_cavi,
+)
+from lmpromp_ppl.models.conditionals import draw_integrated_sites
 from lmpromp_ppl.models.hyper import Hyperparameters
-from lmpromp_ppl.models.lmpromp import lmpromp_model, prepare_data
+from lmpromp_ppl.models.lmpromp import prepare_data
+from lmpromp_ppl.models.registry import resolve_collapse
 
 __all__ = [
     "GUIDES",
@@ -111,225 +117,12 @@ __all__ = [
     "run_svi",
 ]
 
-GUIDES = ("meanfield", "autonormal", "lowrank")
-
-
-def meanfield_guide(data: ModelData, hyper: Hyperparameters, fixed: Mapping | None = None) -> None:
-    r"""Guide of CAVI's family (eq. 4.3) for the full single-type LMProMP.
-
-    Variational parameters (``numpyro.param``; positive ones constrained):
-    ``w_loc`` (L, d), ``w_scale_tril`` (L, d, d), ``h_loc`` (L, V),
-    ``h_scale_tril`` (L, V, V), ``b_loc`` (d,), ``b_var`` () (:math:`\sigma_b`),
-    ``M_loc`` (d, V), ``M_var`` (V,) (:math:`\sigma_{m_v}`), ``alpha_shape``,
-    ``alpha_rate`` () (:math:`\bar a, \bar b`), ``lam_shape``, ``lam_rate`` (V,)
-    (:math:`\bar c, \bar d_v`), and ``beta_shape``, ``beta_rate`` when
-    ``hyper.learn_beta``.  Their initial values come from ``SVI.init``'s
-    ``init_params`` (:func:`meanfield_init`).
-
-    ``fixed`` is accepted for the common ``guide(data, fixed)`` signature and
-    must be empty.
-    """
-    if fixed:
-        raise LmprompError("the meanfield guide does not support fixed sites")
-    num_demos, _, num_weights = data.psi.shape
-    num_latent = hyper.latent_dim
-    eye_d = jnp.eye(num_weights)
-    eye_v = jnp.eye(num_latent)
-    w_loc = numpyro.param("w_loc", jnp.zeros((num_demos, num_weights)))
-    w_tril = numpyro.param("w_scale_tril", jnp.broadcast_to(0.1 * eye_d, (num_demos, num_weights, num_weights)),
-                           constraint=constraints.lower_cholesky)
-    h_loc = numpyro.param("h_loc", jnp.zeros((num_demos, num_latent)))
-    h_tril = numpyro.param("h_scale_tril", jnp.broadcast_to(0.1 * eye_v, (num_demos, num_latent, num_latent)),
-                           constraint=constraints.lower_cholesky)
-    b_loc = numpyro.param("b_loc", jnp.zeros(num_weights))
-    b_var = numpyro.param("b_var", jnp.array(0.01), constraint=constraints.positive)
-    M_loc = numpyro.param("M_loc", jnp.zeros((num_weights, num_latent)))
-    M_var = numpyro.param("M_var", jnp.full(num_latent, 0.01), constraint=constraints.positive)
-    alpha_shape = numpyro.param("alpha_shape", jnp.array(1.0), constraint=constraints.positive)
-    alpha_rate = numpyro.param("alpha_rate", jnp.array(1.0), constraint=constraints.positive)
-    lam_shape = numpyro.param("lam_shape", jnp.ones(num_latent), constraint=constraints.positive)
-    lam_rate = numpyro.param("lam_rate", jnp.ones(num_latent), constraint=constraints.positive)
-
-    numpyro.sample("b", dist.Normal(b_loc, jnp.sqrt(b_var)).to_event(1))
-    numpyro.sample("lam", dist.Gamma(lam_shape, lam_rate).to_event(1))
-    numpyro.sample("M", dist.Normal(M_loc, jnp.broadcast_to(jnp.sqrt(M_var), M_loc.shape)).to_event(2))
-    numpyro.sample("alpha", dist.Gamma(alpha_shape, alpha_rate))
-    if hyper.learn_beta:
-        beta_shape = numpyro.param("beta_shape", jnp.array(hyper.beta_a0), constraint=constraints.positive)
-        beta_rate = numpyro.param("beta_rate", jnp.array(hyper.beta_b0), constraint=constraints.positive)
-        numpyro.sample("beta", dist.Gamma(beta_shape, beta_rate))
-    with numpyro.plate("demo", num_demos):
-        numpyro.sample("h", dist.MultivariateNormal(h_loc, scale_tril=h_tril))
-        numpyro.sample("w", dist.MultivariateNormal(w_loc, scale_tril=w_tril))
-
-
-def meanfield_init(data: ModelData, hyper: Hyperparameters) -> dict[str, np.ndarray]:
-    r"""A starting point for :func:`meanfield_guide` in the spirit of Sec. 4.1.1.
-
-    Per-demonstration ridge regression :math:`\hat{\mathbf w}_i = (\beta\Psi_i^T\Psi_i
-    + \mathbf I)^{-1}\beta\Psi_i^T \mathbf y_i`; ``b`` their mean; ``M`` and ``h``
-    from the leading V principal directions (``h`` scaled to unit variance, the
-    thesis's PCA initialisation); then one pass of the Sec. 4.1.1 formulas for the
-    covariances and the Gamma factors given these means.
-    """
-    prepared = prepare_data(data)
-    psi, y = np.asarray(prepared.psi), np.asarray(prepared.y)
-    num_demos, _, num_weights = psi.shape
-    num_latent = hyper.latent_dim
-    beta = hyper.beta_a0 / hyper.beta_b0 if hyper.learn_beta else hyper.beta
-    gram = np.einsum("lsd,lse->lde", psi, psi)
-    w_hat = np.linalg.solve(beta * gram + np.eye(num_weights),
-                            beta * np.einsum("lsd,ls->ld", psi, y)[..., None])[..., 0]
-    b = w_hat.mean(axis=0)
-    centred = w_hat - b
-    _, sing, vt = np.linalg.svd(centred, full_matrices=False)
-    sing = np.concatenate([sing, np.zeros(num_latent)])[:num_latent]
-    vt = np.concatenate([vt, np.zeros((num_latent, num_weights))])[:num_latent]
-    scale = sing / np.sqrt(num_demos)
-    M = vt.T * scale
-    h = np.where(scale > 0, (centred @ vt.T) / np.where(scale > 0, scale, 1.0), 0.0)
-    resid = centred - h @ M.T
-    a_bar = hyper.a0 + 0.5 * num_demos * num_weights
-    b_bar = hyper.b0 + 0.5 * np.sum(resid**2) + 1e-3 * a_bar  # keeps E[alpha] finite on exact fits
-    alpha = a_bar / b_bar
-    w_cov = np.linalg.inv(beta * gram + alpha * np.eye(num_weights))
-    lam = (hyper.c0 + 0.5 * num_weights) / (hyper.d0 + 0.5 * np.sum(M**2, axis=0))
-    h_cov = np.linalg.inv(alpha * M.T @ M + hyper.gamma * np.eye(num_latent))
-    init = {
-        "w_loc": w_hat,
-        "w_scale_tril": np.linalg.cholesky(w_cov),
-        "h_loc": h,
-        "h_scale_tril": np.broadcast_to(np.linalg.cholesky(h_cov), (num_demos, num_latent, num_latent)).copy(),
-        "b_loc": b,
-        "b_var": np.asarray(1.0 / (num_demos * alpha + hyper.lambda0)),
-        "M_loc": M,
-        "M_var": 1.0 / (alpha * np.sum(h**2, axis=0) + lam),
-        "alpha_shape": np.asarray(a_bar),
-        "alpha_rate": np.asarray(b_bar),
-        "lam_shape": np.full(num_latent, hyper.c0 + 0.5 * num_weights),
-        "lam_rate": hyper.d0 + 0.5 * np.sum(M**2, axis=0),
-    }
-    if hyper.learn_beta:
-        init["beta_shape"] = np.asarray(hyper.beta_a0)
-        init["beta_rate"] = np.asarray(hyper.beta_b0)
-    return init
-
-
-def meanfield_params_from_cavi(state) -> dict[str, np.ndarray]:
-    """The :func:`meanfield_guide` parameters of a CAVI state (same factors, eq. 4.3).
-
-    Parameters
-    ----------
-    state : :class:`lmpromp_ppl.inference.cavi.CaviState`
-
-    Returns
-    -------
-    dict of guide parameters (covariances as Cholesky factors)
-    """
-    from lmpromp_ppl.inference.cavi import w_covariance
-
-    return {
-        "w_loc": np.asarray(state.w_mean),
-        "w_scale_tril": np.linalg.cholesky(np.asarray(w_covariance(state))),
-        "h_loc": np.asarray(state.h_mean),
-        "h_scale_tril": np.linalg.cholesky(np.asarray(state.h_cov)),
-        "b_loc": np.asarray(state.b_mean),
-        "b_var": np.asarray(state.b_var),
-        "M_loc": np.asarray(state.M_mean),
-        "M_var": np.asarray(state.M_var),
-        "alpha_shape": np.asarray(state.alpha_shape),
-        "alpha_rate": np.asarray(state.alpha_rate),
-        "lam_shape": np.asarray(state.lam_shape),
-        "lam_rate": np.asarray(state.lam_rate),
-    }
-
-
-def cavi_state_from_meanfield(params: Mapping[str, Any]):
-    """The CAVI state holding the factors of :func:`meanfield_guide` parameters.
-
-    With it, :func:`lmpromp_ppl.inference.cavi.elbo` evaluates the closed-form
-    bound at SVI's parameters.  The weight covariances are full matrices
-    (``FullCovariance``), so evaluate it on data prepared with
-    ``cavi.prepare_cavi_data(data, shared_psi=False)``.  (``beta`` is fixed in CAVI, so a guide with
-    ``beta_shape``/``beta_rate`` has no CAVI counterpart.)
-    """
-    from lmpromp_ppl.inference.cavi import CaviState, FullCovariance
-
-    if "beta_shape" in params:
-        raise LmprompError("CAVI keeps beta fixed; a meanfield guide with learned beta has no CAVI state")
-    p = {k: jnp.asarray(v, jnp.float64) for k, v in params.items()}
-    w_tril, h_tril = p["w_scale_tril"], p["h_scale_tril"]
-    return CaviState(
-        w_mean=p["w_loc"],
-        w_cov=FullCovariance(w_tril @ jnp.swapaxes(w_tril, -1, -2)),
-        h_mean=p["h_loc"],
-        h_cov=h_tril @ jnp.swapaxes(h_tril, -1, -2),
-        b_mean=p["b_loc"],
-        b_var=p["b_var"],
-        M_mean=p["M_loc"],
-        M_var=p["M_var"],
-        alpha_shape=p["alpha_shape"],
-        alpha_rate=p["alpha_rate"],
-        lam_shape=p["lam_shape"],
-        lam_rate=p["lam_rate"],
-    )
-
-
-def make_guide(name: str, model_name: str, data: ModelData, hyper: Hyperparameters, *,
-               collapsed: bool | str = "w", rank: int | None = None,
-               fixed_names: tuple[str, ...] = ()) -> tuple[Callable, Callable]:
-    """The model and guide pair, both called as ``fn(data, fixed)``.
-
-    Parameters
-    ----------
-    name : ``"meanfield"``, ``"autonormal"`` or ``"lowrank"``
-    model_name : ``"promp"``, ``"lmpromp"`` or ``"mixture"``
-    data : model inputs (the guides built here take their shapes at run time;
-        kept so that every guide factory has the same signature)
-    hyper : hyperparameters
-    collapsed : for the automatic guides, ``"w"`` (default), ``"wh"`` or
-        ``False``; the meanfield guide is always on the full model
-    rank : rank of the low-rank guide (None: numpyro's default)
-    fixed_names : sites that the model is conditioned on (automatic guides only)
-
-    Returns
-    -------
-    model, guide
-    """
-    if name not in GUIDES:
-        raise LmprompError(f"unknown guide {name!r}; choose from {list(GUIDES)}")
-    if name == "meanfield":
-        if model_name != "lmpromp":
-            raise LmprompError(
-                f"the svi_meanfield guide exists for the single-type 'lmpromp' model only, not {model_name!r}"
-            )
-        if fixed_names:
-            raise LmprompError("the meanfield guide does not support fixed sites")
-
-        def full_model(data, fixed):
-            lmpromp_model(data, hyper)
-
-        return full_model, lambda data, fixed: meanfield_guide(data, hyper, fixed)
-    spec = _collapse_spec(model_name, collapsed)
-    base = model_function(model_name, spec)
-
-    def model(data, fixed):
-        with handlers.condition(data=fixed):
-            base(data, hyper)
-
-    if name == "autonormal":
-        return model, AutoNormal(model)
-    if rank is not None and (isinstance(rank, bool) or int(rank) != rank or rank < 1):
-        raise LmprompError(f"rank must be an integer >= 1, got {rank!r}")
-    return model, AutoLowRankMultivariateNormal(model, rank=rank)
-
-
 class SviContext(NamedTuple):
     """Everything :meth:`SviResult.sample` needs besides the parameters."""
 
     model_name: str
     guide: str
-    spec: str
+    collapse: str
     rank: int | None
     data: ModelData
     hyper: Hyperparameters
@@ -362,6 +155,34 @@ class SviResult(NamedTuple):
     options: dict[str, Any]
     context: SviContext
 
+    def importance_log_ratios(self, key: jax.Array, num_draws: int) -> tuple[np.ndarray, tuple]:
+        """log p - log q for ``num_draws`` particles of the guide, and (model, guide, params, args).
+
+        The model is the guide's own (collapsed over ``w`` for the automatic guides,
+        where ``w`` given theta is exact and cancels from the ratio), through
+        numpyro's importance traces; used for the PSIS k-hat of the fit.
+        """
+        from numpyro.handlers import seed
+        from numpyro.infer.elbo import get_importance_log_probs
+
+        ctx = self.context
+        model, guide = make_guide(ctx.guide, ctx.model_name, ctx.data, ctx.hyper, collapsed=ctx.collapse,
+                                  rank=ctx.rank, fixed_names=tuple(sorted(ctx.fixed)))
+        params = {k: jnp.asarray(v) for k, v in self.params.items()}
+        args = (ctx.data, ctx.fixed)
+        # An autoguide sets itself up on its first call by running the model under the
+        # enclosing seed handler, which would shift the particles of that first call;
+        # set it up here so every call with a key draws the same particles.
+        get_importance_log_probs(seed(model, 0), seed(guide, 0), args, {}, params)
+
+        def one(k):
+            k_model, k_guide = jax.random.split(k)
+            lp_model, lp_guide = get_importance_log_probs(seed(model, k_model), seed(guide, k_guide), args, {}, params)
+            return sum(v.sum() for v in lp_model.values()) - sum(v.sum() for v in lp_guide.values())
+
+        log_ratio = jax.jit(jax.vmap(one))(jax.random.split(key, num_draws))
+        return np.asarray(log_ratio), (model, guide, params, args)
+
     def sample(self, key: jax.Array, num_draws: int) -> dict[str, np.ndarray]:
         r"""Draws from q with the contract's site names, each (num_draws, ...).
 
@@ -374,20 +195,20 @@ class SviResult(NamedTuple):
         num_draws = int(num_draws)
         if num_draws < 1:
             raise LmprompError(f"num_draws must be >= 1, got {num_draws}")
-        model, guide = make_guide(ctx.guide, ctx.model_name, ctx.data, ctx.hyper, collapsed=ctx.spec,
+        model, guide = make_guide(ctx.guide, ctx.model_name, ctx.data, ctx.hyper, collapsed=ctx.collapse,
                                   rank=ctx.rank, fixed_names=tuple(sorted(ctx.fixed)))
-        key_q, key_cond = jax.random.split(_raw_key(key))
+        key_q, key_cond = jax.random.split(raw_key(key))
         trace = handlers.trace(handlers.seed(model, 0)).get_trace(ctx.data, ctx.fixed)
         sites = [n for n, s in trace.items()
                  if (s["type"] == "sample" and not s["is_observed"]) or s["type"] == "deterministic"]
         params = {k: jnp.asarray(v) for k, v in self.params.items()}
         predictive = Predictive(model, guide=guide, params=params, num_samples=num_draws, return_sites=sites)
         draws = dict(predictive(key_q, ctx.data, ctx.fixed))
-        spec = "" if ctx.guide == "meanfield" else ctx.spec
-        if spec:
+        collapse = "none" if ctx.guide == "meanfield" else ctx.collapse
+        if collapse != "none":
             flat = dict(draws)
             flat.update({k: jnp.broadcast_to(v, (num_draws,) + v.shape) for k, v in ctx.fixed.items()})
-            draws.update(posterior_conditional_draws(ctx.model_name, spec, key_cond, ctx.data, ctx.hyper, flat))
+            draws.update(draw_integrated_sites(ctx.model_name, collapse, key_cond, ctx.data, ctx.hyper, flat))
         return {k: np.asarray(v) for k, v in draws.items()}
 
 
@@ -437,7 +258,7 @@ def run_svi(
     key: jax.Array,
     *,
     guide: str = "lowrank",
-    collapsed: bool | str = "w",
+    collapsed: str = "w",
     num_steps: int = 20000,
     learning_rate: float = 0.01,
     learning_rate_decay: float = 1.0,
@@ -460,7 +281,7 @@ def run_svi(
     hyper : hyperparameters
     key : PRNG key (typed or raw)
     guide : ``"meanfield"``, ``"autonormal"`` or ``"lowrank"`` (module docstring)
-    collapsed : model of the automatic guides: ``"w"`` (default), ``"wh"``, ``False``
+    collapsed : model of the automatic guides: ``"w"`` (default), ``"wh"``, ``"none"``
     num_steps : maximum number of steps (rounded up to a multiple of ``window``)
     learning_rate : initial Adam step size
     learning_rate_decay : the step size at step ``i`` is
@@ -476,7 +297,8 @@ def run_svi(
     plateau_reductions : number of plateaus on which the step size is
         multiplied by ``plateau_factor`` before the next plateau stops the run
     plateau_factor : step-size reduction factor on a plateau, in (0, 1)
-    progress : print the mean loss of each chunk to stderr
+    progress : True prints the mean loss of each chunk to stderr; or a callable
+        ``(steps, mean loss) -> None`` called after each chunk
     init_params : initial (constrained) values of variational parameters; for
         the meanfield guide the default is :func:`meanfield_init`
     fixed : values at which some latent sites are held (automatic guides)
@@ -497,11 +319,11 @@ def run_svi(
         raise LmprompError(f"plateau_factor must lie in (0, 1), got {plateau_factor!r}")
     if not (np.isfinite(stop_tol) and stop_tol >= 0):
         raise LmprompError(f"stop_tol must be non-negative, got {stop_tol!r}")
-    spec = _collapse_spec(model_name, collapsed)
+    collapse = resolve_collapse(model_name, collapsed)
     data = ModelData(*(jnp.asarray(a, dtype=jnp.float64) for a in data))
     prepare_data(data)  # shape and value checks with their own messages
     fixed = {k: jnp.asarray(v, dtype=jnp.float64) for k, v in (fixed or {}).items()}
-    model, guide_fn = make_guide(guide, model_name, data, hyper, collapsed=spec, rank=rank,
+    model, guide_fn = make_guide(guide, model_name, data, hyper, collapsed=collapse, rank=rank,
                                  fixed_names=tuple(sorted(fixed)))
     if guide == "meanfield":
         init = meanfield_init(data, hyper)
@@ -512,7 +334,7 @@ def run_svi(
 
     if not (np.isfinite(learning_rate_decay) and 0 < learning_rate_decay <= 1):
         raise LmprompError(f"learning_rate_decay must lie in (0, 1], got {learning_rate_decay!r}")
-    cache_key = (model_name, guide, spec, rank, hyper, float(learning_rate_decay),
+    cache_key = (model_name, guide, collapse, rank, hyper, float(learning_rate_decay),
                  int(num_particles), int(window), tuple(sorted(fixed)),
                  jax.tree_util.tree_structure((data, fixed, init)),
                  tuple((jnp.shape(a), jnp.result_type(a)) for a in jax.tree_util.tree_leaves((data, fixed, init))))
@@ -539,16 +361,17 @@ def run_svi(
         else:
             # an autoguide records its prototype trace on first call: initialise eagerly
             init_fn = partial(_eager_init, svi)
-        state = init_fn(_raw_key(key), data, fixed, init)
+        state = init_fn(raw_key(key), data, fixed, init)
         chunk = jax.jit(run_chunk).lower(state, data, fixed).compile()
         _PROGRAMS[cache_key] = cached = (svi, init_fn, chunk)
     else:
         svi, init_fn, chunk = cached
-        state = init_fn(_raw_key(key), data, fixed, init)
+        state = init_fn(raw_key(key), data, fixed, init)
     rate = float(learning_rate)
     state = jax.block_until_ready(_with_rate(state, rate))
     compile_seconds = time.perf_counter() - start
 
+    report = line_reporter(progress, f"svi_{guide}")
     start = time.perf_counter()
     losses: list[np.ndarray] = []
     converged = False
@@ -562,9 +385,8 @@ def run_svi(
         finite = chunk_loss[np.isfinite(chunk_loss)]
         current = float(np.mean(finite)) if finite.size else None
         current_var = float(np.var(finite) / finite.size) if finite.size > 1 else None
-        if progress and current is not None:
-            print(f"svi_{guide}: step {len(losses) * window}, mean loss {current:.6g}, step size {rate:.3g}",
-                  file=sys.stderr)
+        if report is not None and current is not None:
+            report(len(losses) * window, current)
         if previous is not None and current is not None and stop_tol > 0:
             noise = 2.0 * np.sqrt(previous_var + current_var) if None not in (previous_var, current_var) else 0.0
             if abs(current - previous) <= max(stop_tol * abs(previous), noise):
@@ -581,12 +403,12 @@ def run_svi(
                       f"smoothed loss changed by less than {stop_tol}", ConvergenceWarning, stacklevel=2)
     params = {k: np.asarray(v) for k, v in svi.constrain_fn(average).items()}
     loss_trace = np.concatenate(losses)
-    options = {"guide": guide, "collapsed": "none" if guide == "meanfield" else (spec or "none"),
+    options = {"guide": guide, "collapsed": "none" if guide == "meanfield" else collapse,
                "num_steps": int(num_steps), "learning_rate": float(learning_rate),
                "learning_rate_decay": float(learning_rate_decay),
                "num_particles": int(num_particles), "rank": rank, "stop_tol": float(stop_tol),
                "window": int(window), "plateau_reductions": int(plateau_reductions),
                "plateau_factor": float(plateau_factor), "final_learning_rate": rate, "fixed": sorted(fixed)}
-    context = SviContext(model_name, guide, spec, rank, data, hyper, fixed)
+    context = SviContext(model_name, guide, collapse, rank, data, hyper, fixed)
     return SviResult(params, loss_trace, int(loss_trace.shape[0]), converged, seconds, compile_seconds,
                      options, context)

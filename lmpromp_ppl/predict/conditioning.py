@@ -39,6 +39,7 @@ from jax.scipy.special import logsumexp
 from jax.typing import ArrayLike
 
 from lmpromp_ppl.errors import LmprompError
+from lmpromp_ppl.models.registry import MODEL_NAMES as MODELS
 from lmpromp_ppl.predict.gaussian import GaussianMixture, condition_gaussian, observation_marginal
 from lmpromp_ppl.predict.observations import Observation, empty_observation
 
@@ -56,7 +57,6 @@ __all__ = [
 ]
 
 #: Model names accepted by :func:`condition`.
-MODELS = ("promp", "lmpromp", "mixture")
 
 #: Sites each model's conditioning reads, with their number of (non-sample) dims.
 SITES: dict[str, dict[str, int]] = {

@@ -10,7 +10,7 @@ posterior.  NUTS is the reference.  Before any metric:
 2. every engine's draws are put in that frame
    (:func:`~lmpromp_ppl.diagnostics.alignment.align_draws`) and reduced to
    identifiable quantities
-   (:func:`~lmpromp_ppl.diagnostics.quantities.identifiable_quantities`);
+   (:func:`~lmpromp_ppl.quantities.identifiable_quantities`);
 3. each VI engine is compared with NUTS per quantity
    (:mod:`lmpromp_ppl.diagnostics.metrics`), its Pareto k-hat is computed,
    and the reliability of NUTS itself is checked.
@@ -36,6 +36,7 @@ from typing import Sequence
 import numpy as np
 
 from lmpromp_ppl.errors import ConvergenceWarning, LmprompError
+from lmpromp_ppl.inference.registry import ENGINES, SVI_ENGINES, check_pair, engines_for
 
 __all__ = ["QUANTITIES", "EXTRA_QUANTITIES", "expand_engines", "compute_metrics", "compare"]
 
@@ -47,7 +48,6 @@ EXTRA_QUANTITIES = ("pred_sd", "projector", "M_aligned", "mu_w")
 JOINT_QUANTITIES = ("b", "alpha", "lam", "gram_eig", "mu_w")
 #: Quantities whose R-hat and ESS judge the reference.
 RELIABILITY_QUANTITIES = ("b", "alpha", "lam", "gram_eig", "pred_mean", "pred_sd", "w", "mu_w")
-SVI_ENGINES = ("svi_meanfield", "svi_autonormal", "svi_lowrank")
 #: Bound (bytes before compression) on the posterior draws each engine's posterior.nc keeps.
 REPORT_DRAW_BYTES = 300_000
 
@@ -57,24 +57,20 @@ def expand_engines(engines: str | Sequence[str], model: str) -> list[str]:
 
     NUTS is required (it is the reference) and put first; duplicates are dropped.
     """
-    from lmpromp_ppl.api import ENGINES
-
     items = [e.strip() for e in (engines.split(",") if isinstance(engines, str) else engines)]
     items = [e for e in items if e]
     out: list[str] = []
     for e in items:
         if e == "svi":
-            out += [s for s in SVI_ENGINES if not (s == "svi_meanfield" and model != "lmpromp")]
+            out += [s for s in SVI_ENGINES if s in engines_for(model)]
         elif e in ENGINES:
             out.append(e)
         else:
             raise LmprompError(f"unknown engine {e!r}; choose from svi, {', '.join(ENGINES)}")
     if "nuts" not in out:
         raise LmprompError("--engines must include nuts: it is the reference the other engines are compared with")
-    if "cavi" in out and model == "promp":
-        raise LmprompError("CAVI is offered for the lmpromp and mixture models, not for promp")
-    if "svi_meanfield" in out and model != "lmpromp":
-        raise LmprompError(f"svi_meanfield exists for the lmpromp model only, not {model!r}")
+    for e in out:
+        check_pair(model, e)
     if len(out) < 2:
         raise LmprompError("--engines needs at least one engine besides nuts to compare")
     unique = list(dict.fromkeys(out))
@@ -89,7 +85,7 @@ def _merge(x: np.ndarray) -> np.ndarray:
 
 def _engine_quantities(result, reference, rank, num_draws, key):
     from lmpromp_ppl.diagnostics.alignment import align_draws
-    from lmpromp_ppl.diagnostics.quantities import derived_quantities, identifiable_quantities
+    from lmpromp_ppl.quantities import derived_quantities, identifiable_quantities
 
     draws = result.posterior_draws(num_draws, key)
     derived = derived_quantities(result.model, draws, num_dofs=result.num_dofs, num_basis=result.num_basis,
@@ -124,7 +120,7 @@ def compute_metrics(results: dict, data, *, num_draws: int = 1000, seed: int = 0
         reference_reliability,
         summarise_comparison,
     )
-    from lmpromp_ppl.diagnostics.quantities import active_rank, gram_eigenvalues
+    from lmpromp_ppl.quantities import active_rank, gram_eigenvalues
 
     if "nuts" not in results:
         raise LmprompError("compute_metrics needs a 'nuts' result as the reference")
@@ -239,7 +235,7 @@ def compare(
         The content of ``metrics.json``.
     """
     from lmpromp_ppl.api import MODELS, fit, prepare, resolve_num_basis, select_num_basis
-    from lmpromp_ppl.cli._common import prepare_out_dir
+    from lmpromp_ppl.outputs import prepare_out_dir
     from lmpromp_ppl.models.hyper import preset
     from lmpromp_ppl.reports.report import write_report
     from lmpromp_ppl.results import to_json_value
@@ -263,9 +259,12 @@ def compare(
     num_basis = resolve_num_basis(num_basis, model)
     if num_basis == "auto":
         say("choosing the number of basis functions by the bound ...")
-        num_basis = select_num_basis(dataset, hyper=hyper, seed=seed)["num_basis"]
+        prepared = select_num_basis(dataset, hyper=hyper, seed=seed)["prepared"]
+        num_basis = prepared.num_basis
         say(f"J = {num_basis}")
-    spec, raw, _, _, mdata = prepare(dataset, num_basis)
+    else:
+        prepared = prepare(dataset, num_basis)  # the one data path: every engine and diagnostic reads it
+    spec, raw, mdata = prepared.spec, prepared.raw, prepared.model_data
     hyper.validate_for(mdata.num_weights, mdata.num_demos)
     out = prepare_out_dir(Path(out_dir), force)
 
@@ -276,8 +275,7 @@ def compare(
         # a convergence warning is part of the comparison: keep it for the report
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", ConvergenceWarning)
-            results[name] = fit(raw if not isinstance(dataset, str) else dataset, model=model, engine=name,
-                                hyper=hyper, num_basis=num_basis, seed=seed, progress=progress,
+            results[name] = fit(prepared, model=model, engine=name, hyper=hyper, seed=seed, progress=progress,
                                 **_options(name, num_chains, num_warmup, num_samples, svi_steps))
         engine_warnings[name] = []
         for w in caught:

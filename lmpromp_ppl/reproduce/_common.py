@@ -20,14 +20,15 @@ import time
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Sequence
 
 import jax
 import numpy as np
 
 from lmpromp_ppl._progress import show_progress_bars
-from lmpromp_ppl.data.core import Demonstrations, ModelData, Scaling, model_data, standardize
-from lmpromp_ppl.errors import ConvergenceWarning, LmprompError
+from lmpromp_ppl.data.core import Demonstrations, ModelData, Scaling
+from lmpromp_ppl.data.prepared import prepare_dataset
+from lmpromp_ppl.errors import ConvergenceWarning, EngineDivergedError, LmprompError
 from lmpromp_ppl.basis import DEFAULT_NUM_BASIS, DEFAULT_WIDTH, THESIS_WIDTH
 from lmpromp_ppl.models.hyper import DEFAULT, THESIS, Hyperparameters
 
@@ -181,30 +182,26 @@ def _finite(params: dict) -> bool:
     return all(bool(np.all(np.isfinite(np.asarray(v)))) for v in params.values())
 
 
-def _cavi(fit_fn: Callable, data: ModelData, hyper: Hyperparameters, seed: int, restarts: int) -> FitOutcome:
-    from lmpromp_ppl.inference.cavi import point_estimate
+def _cavi(data: ModelData, hyper: Hyperparameters, seed: int, restarts: int, mixture: bool) -> FitOutcome:
+    from lmpromp_ppl.inference import cavi
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ConvergenceWarning)
         try:
-            result = fit_fn(
-                data, hyper, jax.random.key(seed), tol=TOL, max_iter=MAX_ITER,
+            result = cavi.fit(
+                data, hyper, jax.random.key(seed), mixture=mixture, tol=TOL, max_iter=MAX_ITER,
                 num_restarts=restarts, shared_psi=False,
             )
-        except LmprompError as exc:
-            if "diverged" not in str(exc):
-                raise
+        except EngineDivergedError:
             return FitOutcome({}, False, False)
-    params = {k: np.asarray(v) for k, v in point_estimate(result.state).items()}
+    params = {k: np.asarray(v) for k, v in cavi.point_estimate(result.state).items()}
     finite = _finite(params) and math.isfinite(result.elbo)
     return FitOutcome(params, bool(result.converged), finite, result.state)
 
 
 def fit_lmpromp(data: ModelData, hyper: Hyperparameters, seed: int = 0) -> FitOutcome:
     """Single-type LMProMP by CAVI (Sec. 4.1); a learned beta when ``hyper.learn_beta``."""
-    from lmpromp_ppl.inference.cavi import fit_cavi
-
-    return _cavi(fit_cavi, data, hyper.replace(num_components=1), seed, 1)
+    return _cavi(data, hyper.replace(num_components=1), seed, 1, mixture=False)
 
 
 def fit_mixture(data: ModelData, hyper: Hyperparameters, seed: int = 0, restarts: int = 2) -> FitOutcome:
@@ -213,9 +210,7 @@ def fit_mixture(data: ModelData, hyper: Hyperparameters, seed: int = 0, restarts
     ``params`` holds ``pi`` (K,), ``b`` (K, d), ``M`` (K, d, V), ``alpha`` (K,)
     with removed components at ``pi = 0``.
     """
-    from lmpromp_ppl.inference.cavi import fit_cavi_mixture
-
-    return _cavi(fit_cavi_mixture, data, hyper, seed, restarts)
+    return _cavi(data, hyper, seed, restarts, mixture=True)
 
 
 def fit_promp(data: ModelData) -> FitOutcome:
@@ -259,12 +254,12 @@ def standardised_model_data(
     ``keep`` (T,) bool marks the time samples that are observed (same for every
     demonstration; the others are masked, keeping the array shapes).
     """
-    scaled, scaling = standardize(demos)
-    data = model_data(scaled, num_basis, width)
+    prepared = prepare_dataset(demos, num_basis, width=width)
+    data = prepared.model_data
     if keep is not None:
         row = time_mask(demos.lengths[0], demos.num_dofs, keep)
         data = data._replace(mask=data.mask * row[None, :])
-    return data, scaling, scaled
+    return data, prepared.scaling, prepared.scaled
 
 
 class progress_bar:

@@ -29,6 +29,7 @@ import numpy as np
 
 from lmpromp_ppl.data.core import Demonstrations
 from lmpromp_ppl.models.hyper import Hyperparameters
+from lmpromp_ppl.models.registry import MODEL_NAMES
 from lmpromp_ppl.predict import condition, observe, score_heldout
 from lmpromp_ppl.reproduce._common import (
     SETTINGS,
@@ -65,7 +66,6 @@ __all__ = [
 #: Target-noise standard deviation (standardised units) of the held-out log density: beta = 100.
 TARGET_SD = 0.1
 #: Models compared, in plotting order.
-MODEL_NAMES = ("promp", "lmpromp", "mixture")
 
 
 @dataclass(frozen=True)

@@ -1,6 +1,6 @@
 r"""Search over mixture configurations: restarts, merge and split moves (SMEM / VBMFA).
 
-Plain CAVI for the mixture (:mod:`lmpromp_ppl.inference.cavi_mixture`) climbs to
+Plain CAVI for the mixture (:mod:`lmpromp_ppl.inference.cavi`) climbs to
 the nearest local optimum of the bound; from a k-means start with more
 components than movement types it typically keeps every component, each
 covering part of a type.  This module searches between such optima, in the
@@ -26,10 +26,10 @@ components adapt to their responsibilities) and then full sweeps (at most
 The best move is accepted only if its bound exceeds that of the unchanged state
 after the same sweeps (:func:`accept`); otherwise the search stops.  The best
 bound kept is therefore non-decreasing over the search, and the full sweeps
-themselves are the plain CAVI sweeps of :func:`lmpromp_ppl.inference.cavi_mixture.step`.
+themselves are the plain CAVI sweeps of :func:`lmpromp_ppl.inference.cavi.step`.
 
 Removed components contribute nothing to the bound (the module docstring of
-:mod:`~lmpromp_ppl.inference.cavi_mixture`), so bounds with different numbers of
+:mod:`~lmpromp_ppl.inference.cavi.state`), so bounds with different numbers of
 active components are bounds of the same declared K-component model and can be
 compared.
 """
@@ -39,7 +39,7 @@ from __future__ import annotations
 import math
 import time
 from functools import partial
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -48,9 +48,14 @@ from jax import Array
 from sklearn.cluster import KMeans
 
 from lmpromp_ppl.errors import LmprompError
-from lmpromp_ppl.inference import cavi as _cavi
-from lmpromp_ppl.inference.cavi import CaviData, CaviFit
-from lmpromp_ppl.inference import cavi_mixture as cm
+from lmpromp_ppl.inference.cavi.data import CaviData
+from lmpromp_ppl.inference.cavi.init import function_space
+from lmpromp_ppl.inference.cavi.loop import iterate, run
+from lmpromp_ppl.inference.cavi.posterior import responsibilities
+from lmpromp_ppl.inference.cavi.restarts import CaviFit, best_fit, check_restart_bound
+from lmpromp_ppl.inference.cavi.state import CaviHyper, CaviState, expected_stats
+from lmpromp_ppl.inference.cavi.updates import updates_for
+from lmpromp_ppl.inference.compiled import compiled
 
 __all__ = [
     "SEARCHES",
@@ -60,6 +65,7 @@ __all__ = [
     "merge_candidates",
     "split_candidates",
     "merge_state",
+    "state_from_labels",
     "split_state",
     "run_candidates",
     "search",
@@ -90,7 +96,7 @@ class SearchResult(NamedTuple):
     compile_seconds : ahead-of-time compilation of :func:`run_candidates` (0 when already compiled)
     """
 
-    state: cm.MixtureState
+    state: CaviState
     elbo: float
     trace: np.ndarray
     moves: list[Move]
@@ -111,13 +117,7 @@ def accept(candidate_elbo: float, reference_elbo: float, rel_tol: float = 1e-9) 
 
 
 # --------------------------------------------------------------------------- candidates
-def _function_coords(data: CaviData, W: np.ndarray) -> np.ndarray:
-    from lmpromp_ppl.inference.init import _function_space
-
-    return _function_space(data, W)
-
-
-def merge_candidates(state: cm.MixtureState, data: CaviData) -> list[tuple[int, int]]:
+def merge_candidates(state: CaviState, data: CaviData) -> list[tuple[int, int]]:
     """Pairs (k, l) of active components, most promising merge first.
 
     Ranked by the correlation of the columns k and l of the responsibilities
@@ -126,9 +126,9 @@ def merge_candidates(state: cm.MixtureState, data: CaviData) -> list[tuple[int, 
     pair k has the larger expected count (it absorbs l).
     """
     active = np.flatnonzero(np.asarray(state.active))
-    resp = np.asarray(cm.responsibilities(state))
+    resp = np.asarray(responsibilities(state))
     counts = resp.sum(axis=0)
-    centres = _function_coords(data, np.asarray(state.b_mean))
+    centres = function_space(data, np.asarray(state.b_mean))
     rows = []
     for a_i, a in enumerate(active):
         for b in active[a_i + 1:]:
@@ -142,14 +142,14 @@ def merge_candidates(state: cm.MixtureState, data: CaviData) -> list[tuple[int, 
     return [(k, l) for _, _, k, l in rows]
 
 
-def split_candidates(state: cm.MixtureState, hyper: cm.MixtureHyper, min_count: float = 2.0) -> list[int]:
+def split_candidates(state: CaviState, hyper: CaviHyper, min_count: float = 2.0) -> list[int]:
     """Active components with at least ``min_count`` expected demonstrations, worst fit first.
 
     The fit of component k is its expected negative log-likelihood per
     demonstration, :math:`-\\frac1{N_k}\\sum_ir_{ik}\\big(\\frac d2(E\\log\\alpha_k - \\log 2\\pi)
     - \\frac{\\bar\\alpha_k}2E\\|w_i - b_k - M_kh_{ik}\\|^2\\big)`.
     """
-    st = cm.mixture_stats(state, hyper)
+    st = expected_stats(state, hyper)
     d = state.w_mean.shape[1]
     resp = np.asarray(st.resp)
     counts = resp.sum(axis=0)
@@ -165,7 +165,7 @@ def split_candidates(state: cm.MixtureState, hyper: cm.MixtureHyper, min_count: 
 
 # --------------------------------------------------------------------------- moves
 def _fresh_component(
-    state: cm.MixtureState, hyper: cm.MixtureHyper, k: int, weights: np.ndarray, fallback_M: np.ndarray
+    state: CaviState, hyper: CaviHyper, k: int, weights: np.ndarray, fallback_M: np.ndarray
 ) -> dict[str, np.ndarray]:
     """Factors of component k re-initialised from a weighted PCA of the weight means (as :mod:`.init`).
 
@@ -217,9 +217,9 @@ def _fresh_component(
 
 
 def _with_components(
-    state: cm.MixtureState, hyper: cm.MixtureHyper, resp: np.ndarray, active: np.ndarray,
+    state: CaviState, hyper: CaviHyper, resp: np.ndarray, active: np.ndarray,
     fresh: dict[int, dict[str, np.ndarray]],
-) -> cm.MixtureState:
+) -> CaviState:
     """``state`` with new responsibilities, active mask, q(pi) and the factors of the components in ``fresh``."""
     fields = {name: np.array(getattr(state, name)) for name in (
         "b_mean", "b_var", "M_mean", "M_var", "alpha_shape", "alpha_rate", "lam_shape", "lam_rate")}
@@ -237,9 +237,27 @@ def _with_components(
     )
 
 
-def merge_state(state: cm.MixtureState, hyper: cm.MixtureHyper, k: int, l: int) -> cm.MixtureState:
+def state_from_labels(state: CaviState, hyper: CaviHyper, labels: np.ndarray) -> CaviState:
+    """``state`` with one active component per label (codes 0..n-1 < K), each re-initialised by PCA.
+
+    Starts CAVI at a known partition (e.g. the data's movement types), to compare the
+    bound the search finds with the bound at the labels.
+    """
+    codes = np.asarray(labels, dtype=int)
+    K = state.M_mean.shape[0]
+    if codes.min() < 0 or codes.max() >= K:
+        raise LmprompError(f"label codes must lie in 0..{K - 1}, got {codes.min()}..{codes.max()}")
+    resp = np.eye(K)[codes]
+    active = np.zeros(K, bool)
+    active[np.unique(codes)] = True
+    fresh = {int(k): _fresh_component(state, hyper, int(k), resp[:, k], np.asarray(state.M_mean[k]))
+             for k in np.unique(codes)}
+    return _with_components(state, hyper, resp, active, fresh)
+
+
+def merge_state(state: CaviState, hyper: CaviHyper, k: int, l: int) -> CaviState:
     """Merge component l into k: :math:`r_{ik} \\leftarrow r_{ik} + r_{il}`, l removed, k re-initialised."""
-    resp = np.array(cm.responsibilities(state))
+    resp = np.array(responsibilities(state))
     active = np.array(state.active)
     if not (active[k] and active[l]) or k == l:
         raise LmprompError(f"cannot merge components {k} and {l}: both must be distinct and active")
@@ -251,21 +269,21 @@ def merge_state(state: cm.MixtureState, hyper: cm.MixtureHyper, k: int, l: int) 
 
 
 def split_state(
-    state: cm.MixtureState, data: CaviData, hyper: cm.MixtureHyper, k: int, j: int, seed: int
-) -> cm.MixtureState | None:
+    state: CaviState, data: CaviData, hyper: CaviHyper, k: int, j: int, seed: int
+) -> CaviState | None:
     """Split component k into k and the removed slot j by 2-means (seeded) of k's demonstrations.
 
     A demonstration belongs to k when :math:`r_{ik} \\ge 1/2`; returns None when
     fewer than two do or 2-means finds a single group.
     """
-    resp = np.array(cm.responsibilities(state))
+    resp = np.array(responsibilities(state))
     active = np.array(state.active)
     if not active[k] or active[j]:
         raise LmprompError(f"cannot split component {k} into {j}: {k} must be active and {j} removed")
     members = np.flatnonzero(resp[:, k] >= 0.5)
     if members.size < 2:
         return None
-    coords = _function_coords(data, np.asarray(state.w_mean))[members]
+    coords = function_space(data, np.asarray(state.w_mean))[members]
     groups = KMeans(n_clusters=2, n_init=5, random_state=seed).fit_predict(coords)
     if np.unique(groups).size < 2:
         return None
@@ -280,9 +298,9 @@ def split_state(
 
 # --------------------------------------------------------------------------- compiled runs
 @jax.jit
-def _fixed_z_step(state: cm.MixtureState, data: CaviData, hyper: cm.MixtureHyper) -> cm.MixtureState:
-    """A partial sweep: every update of :func:`cm.updates_for` except q(z) and q(pi); no pruning."""
-    for name, update in cm.updates_for(state).items():
+def _fixed_z_step(state: CaviState, data: CaviData, hyper: CaviHyper) -> CaviState:
+    """A partial sweep: every update of :func:`~.updates.updates_for` except q(z) and q(pi); no pruning."""
+    for name, update in updates_for(state).items():
         if name not in ("z", "pi"):
             state = update(state, data, hyper)
     return state
@@ -290,51 +308,36 @@ def _fixed_z_step(state: cm.MixtureState, data: CaviData, hyper: cm.MixtureHyper
 
 @partial(jax.jit, static_argnames=("buffer", "partial_sweeps"))
 def run_candidates(
-    states: cm.MixtureState, data: CaviData, hyper: cm.MixtureHyper, tol: Array, limit: Array,
+    states: CaviState, data: CaviData, hyper: CaviHyper, tol: Array, limit: Array,
     buffer: int, partial_sweeps: int,
 ):
     """Run a batch of states (leading axis) for ``partial_sweeps`` partial then at most ``limit`` full sweeps.
 
     Returns (states, traces (B, buffer), iterations (B,), converged (B,)); the full
-    sweeps stop per state as in :func:`lmpromp_ppl.inference.cavi.run`.
+    sweeps stop per state as in :func:`~.loop.run`.
     """
 
     def one(state):
         state = jax.lax.fori_loop(0, partial_sweeps, lambda _, s: _fixed_z_step(s, data, hyper), state)
-        result = _cavi._iterate(state, data, hyper, tol, limit, jnp.asarray(-jnp.inf), buffer, step_fn=cm.step)
+        result = iterate(state, data, hyper, tol, limit, jnp.asarray(-jnp.inf), buffer)
         return result.state, result.elbo_trace, result.iterations, result.converged
 
     return jax.vmap(one)(states)
 
 
-_COMPILED: dict = {}
-
-
-def _compiled_candidates(args: tuple, buffer: int, partial_sweeps: int):
-    """Ahead-of-time compiled :func:`run_candidates` for these argument shapes; (function, compile seconds)."""
-    leaves, treedef = jax.tree.flatten(args)
-    key = (treedef, tuple((np.shape(x), jnp.asarray(x).dtype) for x in leaves), buffer, partial_sweeps)
-    if key in _COMPILED:
-        return _COMPILED[key], 0.0
-    start = time.perf_counter()
-    compiled = run_candidates.lower(*args, buffer=buffer, partial_sweeps=partial_sweeps).compile()
-    _COMPILED[key] = compiled
-    return compiled, time.perf_counter() - start
-
-
-def _stack(states: list[cm.MixtureState]) -> cm.MixtureState:
+def _stack(states: list[CaviState]) -> CaviState:
     return jax.tree.map(lambda *xs: jnp.stack(xs), *states)
 
 
-def _index(states: cm.MixtureState, b: int) -> cm.MixtureState:
+def _index(states: CaviState, b: int) -> CaviState:
     return jax.tree.map(lambda x: x[b], states)
 
 
 # --------------------------------------------------------------------------- search
 def search(
-    state: cm.MixtureState,
+    state: CaviState,
     data: CaviData,
-    hyper: cm.MixtureHyper,
+    hyper: CaviHyper,
     *,
     tol: float = 1e-8,
     move_iter: int = 300,
@@ -360,25 +363,25 @@ def search(
     rng = np.random.default_rng(seed)
     compile_seconds = [0.0]
 
-    def run(states):
+    def run_batch(states):
         while len(states) < slots:
             states.append(states[0])
         args = (_stack(states), data, hyper, tol_arr, limit)
-        compiled, seconds = _compiled_candidates(args, move_iter, partial_sweeps)
+        executable, seconds = compiled(run_candidates, args, buffer=move_iter, partial_sweeps=partial_sweeps)
         compile_seconds[0] += seconds
-        out_states, traces, iterations, _ = compiled(*args)
+        out_states, traces, iterations, _ = executable(*args)
         traces, iterations = np.asarray(traces), np.asarray(iterations)
         finals = np.array([traces[b, n - 1] if n > 0 else -np.inf for b, n in enumerate(iterations)])
         return out_states, traces, iterations, finals
 
     # the start: full sweeps only (partial_sweeps of the batch are harmless for a converged start)
-    out, traces, iterations, finals = run([state])
+    out, traces, iterations, finals = run_batch([state])
     state, best = _index(out, 0), float(finals[0])
     trace = [traces[0, : iterations[0]]]
     moves: list[Move] = []
     best_elbos = [best]
     while len(moves) < max_moves:
-        proposals: list[tuple[Move, cm.MixtureState]] = []
+        proposals: list[tuple[Move, CaviState]] = []
         for k, l in merge_candidates(state, data)[:max_merges]:
             proposals.append((Move("merge", (k, l)), merge_state(state, hyper, k, l)))
         free = [j for j in range(K) if not bool(state.active[j])]
@@ -389,7 +392,7 @@ def search(
                     proposals.append((Move("split", (k, free[0])), moved))
         if not proposals:
             break
-        out, traces, iterations, finals = run([state] + [s for _, s in proposals])
+        out, traces, iterations, finals = run_batch([state] + [s for _, s in proposals])
         reference = float(finals[0])
         candidates = finals[1 : 1 + len(proposals)]
         b = int(np.argmax(np.where(np.isfinite(candidates), candidates, -np.inf)))
@@ -410,33 +413,34 @@ def search(
 def fit_with_search(
     starts,
     data: CaviData,
-    hyper: cm.MixtureHyper,
+    hyper: CaviHyper,
     *,
     tol: float,
     max_iter: int,
-    progress: bool,
     max_moves: int | None,
     seed: int,
-    label: str = "CAVI mixture",
+    callback: Callable[[int, float], None] | None = None,
 ) -> CaviFit:
-    """:func:`search` from every start, then full CAVI to ``tol`` / ``max_iter``; the best final bound wins."""
-    best, restart_elbos, seconds, compile_seconds = None, [], 0.0, 0.0
+    """:func:`search` from every start, then full CAVI to ``tol`` / ``max_iter``; the best final bound wins.
+
+    ``callback(sweeps, ELBO)`` reports the final runs' sweeps (of all starts together).
+    """
+    best, restart_elbos, seconds, compile_seconds, offset = None, [], 0.0, 0.0, 0
     for r, start in enumerate(starts):
         begin = time.perf_counter()
         found = search(start, data, hyper, tol=tol, max_moves=max_moves, seed=seed + r)
         searched = time.perf_counter() - begin - found.compile_seconds
         compile_seconds += found.compile_seconds
-        result, trace, run_seconds, run_compile = _cavi._run_one(
-            found.state, data, hyper, float(tol), int(max_iter), progress, f"{label} restart {r + 1}",
-            step_fn=cm.step,
-        )
-        seconds += searched + run_seconds
-        compile_seconds += run_compile
-        final = _cavi.check_restart_bound(float(trace[-1]) if trace.size else found.elbo, r)
+        report = None if callback is None else (lambda done, value, o=offset: callback(o + done, value))
+        result = run(found.state, data, hyper, float(tol), int(max_iter), callback=report)
+        offset += result.iterations
+        seconds += searched + result.seconds
+        compile_seconds += result.compile_seconds
+        trace = result.elbo_trace
+        final = check_restart_bound(float(trace[-1]) if trace.size else found.elbo, r)
         restart_elbos.append(final)
         full_trace = np.concatenate([found.trace, trace])
         if best is None or final > best[0]:
             best = (final, result, full_trace)
     final, result, trace = best
-    return _cavi.best_fit(result, final, trace, int(trace.size), seconds, compile_seconds, restart_elbos,
-                          tol=tol, max_iter=max_iter)
+    return best_fit(result, final, trace, seconds, compile_seconds, restart_elbos, tol=tol, max_iter=max_iter)

@@ -8,29 +8,26 @@ eq. 4.3, App. B.1) for all datasets in one compiled, vectorised
 
 * a sequence of :class:`~lmpromp_ppl.data.core.ModelData`: each replicate
   starts at the thesis's initialisation (ridge regression + PCA, Sec. 4.1.1,
-  :func:`lmpromp_ppl.inference.init.init_state`; NumPy and scikit-learn, so one
+  :func:`lmpromp_ppl.inference.cavi.init_state`; NumPy and scikit-learn, so one
   replicate at a time, before the compiled loop), so each replicate's result
-  is the one :func:`lmpromp_ppl.inference.cavi.fit_cavi` returns for it (one
+  is the one :func:`lmpromp_ppl.inference.cavi.fit` returns for it (one
   start); or
 * one stacked :class:`~lmpromp_ppl.inference.cavi.CaviData` whose datasets
   share one design (a :class:`~lmpromp_ppl.inference.cavi.SharedGram` without
   dataset axis): the same initialisation in pure JAX
-  (:func:`lmpromp_ppl.inference.init.init_state_jax`) runs inside the
+  (:func:`lmpromp_ppl.inference.cavi.init_state_jax`) runs inside the
   compiled, vmapped program, so thousands of datasets need no Python loop.
 
 Under ``vmap`` the loop runs until every replicate has met its own tolerance;
 a replicate that has converged keeps its state (``while_loop``'s batched
 predicate selects the old carry).
 
-Why not :func:`lmpromp_ppl.inference.cavi.run`: it calls an ahead-of-time
-compiled executable, which cannot be traced by ``vmap``; the loop here has
-the same stopping rule (relative ELBO change below ``tol``, NaN, or
-``max_iter``) built on the public :func:`~lmpromp_ppl.inference.cavi.step`.
+The loop is :func:`lmpromp_ppl.inference.cavi.iterate` (the traceable loop that
+:func:`~lmpromp_ppl.inference.cavi.run` compiles), under ``vmap``.
 """
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Sequence
 from functools import partial
@@ -43,9 +40,13 @@ from jax import Array
 
 from lmpromp_ppl.data.core import ModelData
 from lmpromp_ppl.errors import DataError, LmprompError
-from lmpromp_ppl.inference import cavi
-from lmpromp_ppl.inference.cavi import CaviState, HyperArrays
-from lmpromp_ppl.inference.init import init_state, init_state_jax
+from lmpromp_ppl.inference.cavi.data import CaviData, SharedGram, prepare_cavi_data
+from lmpromp_ppl.inference.cavi.init import init_state, init_state_jax
+from lmpromp_ppl.inference.cavi.loop import iterate
+from lmpromp_ppl.inference.cavi.posterior import sample_q
+from lmpromp_ppl.inference.cavi.restarts import check_options
+from lmpromp_ppl.inference.cavi.state import CaviHyper, CaviState, hyper_arrays
+from lmpromp_ppl.inference.compiled import compiled
 from lmpromp_ppl.models.hyper import Hyperparameters
 
 __all__ = ["BatchedCaviFit", "fit_cavi_batched", "replicate_state", "sample_q_batched"]
@@ -75,21 +76,10 @@ class BatchedCaviFit(NamedTuple):
     compile_seconds: float
 
 
-def _iterate_one(state: CaviState, data: cavi.CaviData, hyper: HyperArrays, tol: Array, max_iter: Array):
+def _iterate_one(state: CaviState, data: CaviData, hyper: CaviHyper, tol: Array, max_iter: Array):
     """Sweep one replicate until its relative ELBO change is below ``tol`` (or NaN, or ``max_iter``)."""
-
-    def cond(carry):
-        _, iteration, previous, converged = carry
-        return (iteration < max_iter) & ~converged & ~jnp.isnan(previous)
-
-    def body(carry):
-        state, iteration, previous, _ = carry
-        state, info = cavi.step(state, data, hyper)
-        converged = jnp.abs(info.elbo - previous) <= tol * jnp.abs(info.elbo)
-        return state, iteration + 1, info.elbo, converged
-
-    carry = (state, jnp.zeros((), jnp.int32), jnp.asarray(-jnp.inf, jnp.float64), jnp.zeros((), jnp.bool_))
-    return jax.lax.while_loop(cond, body, carry)
+    result = iterate(state, data, hyper, tol, max_iter, jnp.asarray(-jnp.inf, jnp.float64), 0)
+    return result.state, result.iterations, result.elbo, result.converged
 
 
 @partial(jax.jit, static_argnames=("latent_dim",))
@@ -102,14 +92,11 @@ def _batched_program(states, data, hyper, tol, max_iter, latent_dim: int | None)
     """
     if states is None:
         def one(psi_t_y, y_sq, num_obs):
-            single = cavi.CaviData(psi_t_y, y_sq, num_obs, data.gram)
+            single = CaviData(psi_t_y, y_sq, num_obs, data.gram)
             return _iterate_one(init_state_jax(single, hyper, latent_dim), single, hyper, tol, max_iter)
 
         return jax.vmap(one)(data.psi_t_y, data.y_sq, data.num_obs)
     return jax.vmap(_iterate_one, in_axes=(0, 0, None, None, None))(states, data, hyper, tol, max_iter)
-
-
-_COMPILED: dict = {}
 
 
 def _stack(trees: Sequence) -> object:
@@ -126,7 +113,7 @@ def _prepare_datasets(datasets: Sequence[ModelData], hyper: Hyperparameters):
     shapes = {tuple(np.shape(a) for a in d) for d in datasets}
     if len(shapes) != 1:
         raise DataError(f"all datasets must have the same shapes, got {sorted(shapes)}")
-    prepared = [cavi.prepare_cavi_data(d) for d in datasets]
+    prepared = [prepare_cavi_data(d) for d in datasets]
     paths = {type(p.gram).__name__ for p in prepared}
     if len(paths) != 1:
         raise DataError("all datasets must share their design matrix the same way (fast path or not)")
@@ -134,10 +121,10 @@ def _prepare_datasets(datasets: Sequence[ModelData], hyper: Hyperparameters):
     return _stack([init_state(p, hyper) for p in prepared]), _stack(prepared)
 
 
-def _check_stacked(data: cavi.CaviData, hyper: Hyperparameters) -> None:
+def _check_stacked(data: CaviData, hyper: Hyperparameters) -> None:
     """Shapes of stacked statistics: psi_t_y (B, L, d), y_sq and num_obs (B, L), one unbatched SharedGram."""
     gram = data.gram
-    if not isinstance(gram, cavi.SharedGram) or np.ndim(gram.basis) != 2 or np.ndim(data.psi_t_y) != 3:
+    if not isinstance(gram, SharedGram) or np.ndim(gram.basis) != 2 or np.ndim(data.psi_t_y) != 3:
         raise DataError("stacked CaviData needs psi_t_y of shape (B, L, d) and one SharedGram without dataset axis")
     B, L, d = np.shape(data.psi_t_y)
     if np.shape(data.y_sq) != (B, L) or np.shape(data.num_obs) != (B, L) or np.shape(gram.basis) != (d, d):
@@ -148,7 +135,7 @@ def _check_stacked(data: cavi.CaviData, hyper: Hyperparameters) -> None:
 
 
 def fit_cavi_batched(
-    datasets: Sequence[ModelData] | cavi.CaviData,
+    datasets: Sequence[ModelData] | CaviData,
     hyper: Hyperparameters,
     *,
     tol: float = 1e-8,
@@ -161,12 +148,12 @@ def fit_cavi_batched(
     datasets : either R :class:`ModelData` with identical shapes and the same
         design path (all sharing one design matrix within each dataset, or
         none), initialised one at a time by
-        :func:`lmpromp_ppl.inference.init.init_state`; or one
+        :func:`lmpromp_ppl.inference.cavi.init_state`; or one
         :class:`~lmpromp_ppl.inference.cavi.CaviData` with a leading dataset
         axis on ``psi_t_y`` (R, L, d), ``y_sq`` (R, L) and ``num_obs`` (R, L)
         and one shared design (:class:`~lmpromp_ppl.inference.cavi.SharedGram`,
         no dataset axis), initialised inside the compiled program by
-        :func:`lmpromp_ppl.inference.init.init_state_jax`
+        :func:`lmpromp_ppl.inference.cavi.init_state_jax`
     hyper : hyperparameters (single component, fixed beta; the thesis's
         column-wise family)
     tol : relative ELBO tolerance of each replicate
@@ -180,27 +167,16 @@ def fit_cavi_batched(
         raise LmprompError(f"hyper must be a Hyperparameters, got {type(hyper).__name__}")
     if hyper.num_components != 1 or hyper.learn_beta:
         raise LmprompError("batched CAVI fits the single-type model with a fixed beta (num_components=1)")
-    if not (isinstance(tol, (int, float)) and tol > 0 and math.isfinite(tol)):
-        raise LmprompError(f"tol must be a positive number, got {tol!r}")
-    if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 1:
-        raise LmprompError(f"max_iter must be an integer >= 1, got {max_iter!r}")
-    if isinstance(datasets, cavi.CaviData):
+    check_options(tol, max_iter, 1)
+    if isinstance(datasets, CaviData):
         _check_stacked(datasets, hyper)
         states, data, latent_dim = None, datasets, hyper.latent_dim
     else:
         (states, data), latent_dim = _prepare_datasets(datasets, hyper), None
-    args = (states, data, cavi.hyper_arrays(hyper), jnp.asarray(tol, jnp.float64), jnp.asarray(max_iter, jnp.int32))
-    leaves, treedef = jax.tree.flatten(args)
-    cache_key = (treedef, latent_dim, tuple((np.shape(x), jnp.asarray(x).dtype) for x in leaves))
+    args = (states, data, hyper_arrays(hyper, 0.0), jnp.asarray(tol, jnp.float64), jnp.asarray(max_iter, jnp.int32))
+    executable, compile_seconds = compiled(_batched_program, args, latent_dim=latent_dim)
     start = time.perf_counter()
-    compiled = _COMPILED.get(cache_key)
-    if compiled is None:
-        compiled = _COMPILED[cache_key] = _batched_program.lower(*args, latent_dim=latent_dim).compile()
-        compile_seconds = time.perf_counter() - start
-    else:
-        compile_seconds = 0.0
-    start = time.perf_counter()
-    state, iterations, elbo, converged = jax.block_until_ready(compiled(*args))
+    state, iterations, elbo, converged = jax.block_until_ready(executable(*args))
     seconds = time.perf_counter() - start
     return BatchedCaviFit(state, np.asarray(elbo), np.asarray(iterations), np.asarray(converged),
                           seconds, compile_seconds)
@@ -213,11 +189,11 @@ def replicate_state(fit: BatchedCaviFit, index: int) -> CaviState:
 
 @jax.jit
 def _sample_batched(keys: Array, state: CaviState, template: Array) -> dict[str, Array]:
-    return jax.vmap(lambda k, s: cavi.sample_q(k, s, template.shape[0]))(keys, state)
+    return jax.vmap(lambda k, s: sample_q(k, s, template.shape[0], learned_beta=False))(keys, state)
 
 
 def sample_q_batched(key: Array, fit: BatchedCaviFit, num_draws: int) -> dict[str, np.ndarray]:
-    """Independent draws from each replicate's q: site -> (R, num_draws, ...) (:func:`cavi.sample_q`)."""
+    """Independent draws from each replicate's q: site -> (R, num_draws, ...) (:func:`~lmpromp_ppl.inference.cavi.sample_q`)."""
     if isinstance(num_draws, bool) or int(num_draws) != num_draws or num_draws < 1:
         raise LmprompError(f"num_draws must be a positive integer, got {num_draws!r}")
     num_replicates = fit.elbo.shape[0]

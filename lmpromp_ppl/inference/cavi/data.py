@@ -1,0 +1,196 @@
+r"""Data statistics of the CAVI engine and the storage of the weight covariances.
+
+Every update reads the data only through :class:`CaviData`: :math:`\Psi_i^Ty_i`,
+:math:`y_i^Ty_i`, the number of observed entries and the Gram matrices
+:math:`\Psi_i^T\Psi_i` over the observed entries (thesis Sec. 4.1.1).
+
+Shared design matrix
+--------------------
+When every demonstration has the same :math:`\Psi` (:meth:`ModelData.shares_psi`),
+:func:`prepare_cavi_data` computes one eigendecomposition
+:math:`\Psi^T\Psi = U \operatorname{diag}(s) U^T` per fit and the weight
+covariances are kept in that basis (:class:`EigenCovariance`):
+:math:`\Sigma_{w_i} = U \operatorname{diag}(1/(\beta s + \bar\alpha_i)) U^T`,
+so that a sweep costs :math:`O(L d^2)` instead of :math:`O(L d^3)`.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+
+from lmpromp_ppl.data.core import ModelData
+from lmpromp_ppl.errors import DataError
+
+__all__ = [
+    "DemoGrams",
+    "SharedGram",
+    "CaviData",
+    "prepare_cavi_data",
+    "check_model_data",
+    "FullCovariance",
+    "EigenCovariance",
+    "cov_trace",
+    "cov_logdet",
+    "cov_matrices",
+    "logdet_psd",
+    "gram_quadratic",
+    "gram_trace",
+]
+
+
+class DemoGrams(NamedTuple):
+    """Per-demonstration masked Gram matrices :math:`\\Psi_i^T \\Psi_i`, (L, d, d)."""
+
+    matrices: Array
+
+
+class SharedGram(NamedTuple):
+    """One Gram matrix :math:`\\Psi^T\\Psi = U \\operatorname{diag}(s) U^T` shared by all demonstrations.
+
+    Attributes
+    ----------
+    basis : (d, d) orthogonal eigenvectors U (columns)
+    eigvals : (d,) eigenvalues s (clipped at 0)
+    """
+
+    basis: Array
+    eigvals: Array
+
+
+class CaviData(NamedTuple):
+    """Sufficient statistics of the data used by every update.
+
+    Attributes
+    ----------
+    psi_t_y : (L, d) :math:`\\Psi_i^T y_i` over observed entries
+    y_sq : (L,) :math:`y_i^T y_i` over observed entries
+    num_obs : (L,) number of observed entries :math:`n_i`
+    gram : :class:`DemoGrams` (general path) or :class:`SharedGram` (fast path)
+    """
+
+    psi_t_y: Array
+    y_sq: Array
+    num_obs: Array
+    gram: DemoGrams | SharedGram
+
+
+def prepare_cavi_data(data: ModelData, shared_psi: bool | None = None) -> CaviData:
+    """Precompute the data statistics for CAVI.
+
+    Parameters
+    ----------
+    data : padded model inputs (psi (L, S, d), y (L, S), mask (L, S))
+    shared_psi : use the fast path with one eigendecomposition of :math:`\\Psi^T\\Psi`.
+        ``None`` chooses it when :meth:`ModelData.shares_psi`; ``True`` demands it
+        (error when the demonstrations do not share one design matrix).
+
+    Returns
+    -------
+    CaviData
+    """
+    check_model_data(data)
+    shares = data.shares_psi()
+    if shared_psi is None:
+        shared_psi = shares
+    elif shared_psi and not shares:
+        raise DataError("shared_psi=True but the demonstrations do not share one design matrix")
+    mask = jnp.asarray(data.mask, jnp.float64)
+    # masked entries (padding, or NaN for a missing value) are neutralised
+    psi = jnp.where(mask[..., None] > 0, jnp.asarray(data.psi, jnp.float64), 0.0)
+    y = jnp.where(mask > 0, jnp.asarray(data.y, jnp.float64), 0.0)
+    psi_t_y = jnp.einsum("isd,is->id", psi, y)
+    y_sq = jnp.sum(y**2, axis=1)
+    num_obs = jnp.sum(mask, axis=1)
+    if shared_psi:
+        eigvals, basis = jnp.linalg.eigh(psi[0].T @ psi[0])
+        gram: DemoGrams | SharedGram = SharedGram(basis, jnp.maximum(eigvals, 0.0))
+    else:
+        gram = DemoGrams(jnp.einsum("isd,is,ise->ide", psi, mask, psi))
+    return CaviData(psi_t_y, y_sq, num_obs, gram)
+
+
+def check_model_data(data: ModelData) -> None:
+    """Refuse model inputs the engine cannot use, with a :class:`~lmpromp_ppl.errors.DataError`."""
+    if not isinstance(data, ModelData):
+        raise DataError(f"expected ModelData, got {type(data).__name__}")
+    psi, y, mask = (np.asarray(a) for a in data)
+    if psi.ndim != 3 or y.shape != psi.shape[:2] or mask.shape != psi.shape[:2]:
+        raise DataError(
+            f"inconsistent ModelData shapes: psi {psi.shape}, y {y.shape}, mask {mask.shape}"
+        )
+    if not np.all((mask == 0.0) | (mask == 1.0)):
+        raise DataError("ModelData.mask must contain only 0 and 1")
+    observed = mask == 1.0
+    if not np.all(np.isfinite(y[observed])):
+        raise DataError("observed entries of ModelData.y contain NaN or inf")
+    if not np.all(np.isfinite(psi[observed])):
+        raise DataError("design-matrix rows of observed entries contain NaN or inf")
+
+
+# --------------------------------------------------------------------------- weight covariances
+class FullCovariance(NamedTuple):
+    """Weight covariances stored as (L, d, d) matrices (general path)."""
+
+    matrices: Array
+
+
+class EigenCovariance(NamedTuple):
+    """Weight covariances :math:`\\Sigma_{w_i} = U \\operatorname{diag}(v_i) U^T` with a shared U.
+
+    Attributes
+    ----------
+    basis : (d, d) the eigenvectors U of the shared Gram matrix
+    variances : (L, d) the variances :math:`v_i` in that basis
+    """
+
+    basis: Array
+    variances: Array
+
+
+def cov_trace(cov: FullCovariance | EigenCovariance) -> Array:
+    """(L,) :math:`\\operatorname{tr}\\Sigma_{w_i}`."""
+    if isinstance(cov, EigenCovariance):
+        return jnp.sum(cov.variances, axis=-1)
+    return jnp.trace(cov.matrices, axis1=-2, axis2=-1)
+
+
+def logdet_psd(matrices: Array) -> Array:
+    """log-determinants of positive definite matrices (Cholesky)."""
+    chol = jnp.linalg.cholesky(matrices)
+    return 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol, axis1=-2, axis2=-1)), axis=-1)
+
+
+def cov_logdet(cov: FullCovariance | EigenCovariance) -> Array:
+    """(L,) :math:`\\log|\\Sigma_{w_i}|`."""
+    if isinstance(cov, EigenCovariance):
+        return jnp.sum(jnp.log(cov.variances), axis=-1)
+    return logdet_psd(cov.matrices)
+
+
+def cov_matrices(cov: FullCovariance | EigenCovariance) -> Array:
+    """The weight covariances as (..., L, d, d) matrices, whatever the storage."""
+    if isinstance(cov, EigenCovariance):
+        return jnp.einsum("...dj,...ij,...ej->...ide", cov.basis, cov.variances, cov.basis)
+    return cov.matrices
+
+
+def gram_quadratic(gram: DemoGrams | SharedGram, x: Array) -> Array:
+    """:math:`x_i^T \\Psi_i^T\\Psi_i x_i` for (L, d) x."""
+    if isinstance(gram, SharedGram):
+        return jnp.sum(gram.eigvals * (x @ gram.basis) ** 2, axis=-1)
+    return jnp.einsum("id,ide,ie->i", x, gram.matrices, x)
+
+
+def gram_trace(gram: DemoGrams | SharedGram, cov: FullCovariance | EigenCovariance) -> Array:
+    """:math:`\\operatorname{tr}(\\Psi_i^T\\Psi_i \\Sigma_{w_i})` (same basis on the fast path)."""
+    if isinstance(gram, SharedGram) and isinstance(cov, EigenCovariance):
+        return cov.variances @ gram.eigvals
+    if isinstance(gram, DemoGrams) and isinstance(cov, FullCovariance):
+        return jnp.einsum("ide,ied->i", gram.matrices, cov.matrices)
+    raise TypeError(
+        f"weight covariance {type(cov).__name__} does not match the data path {type(gram).__name__}"
+    )

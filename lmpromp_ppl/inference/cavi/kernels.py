@@ -1,0 +1,126 @@
+r"""Closed-form optimal factors given weighted sufficient statistics (one kernel per factor).
+
+The updates of :mod:`.updates` call these with per-demonstration weights
+``weights`` (L,): the responsibilities :math:`r_{ik}` of one component k (all
+ones for the single type).  The weight kernel takes a per-demonstration prior
+precision (:math:`\sum_k r_{ik}\bar\alpha_k`), which keeps the shared-:math:`\Psi`
+fast path valid.  Derivations: ``docs/derivation.md`` (App. B.1 and B.2 corrected).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from jax import Array
+from jax.scipy.linalg import cho_solve
+from jax.scipy.special import digamma, gammaln
+
+from lmpromp_ppl.inference.cavi.data import CaviData, EigenCovariance, FullCovariance, SharedGram
+
+__all__ = [
+    "w_posterior",
+    "h_posterior",
+    "b_posterior",
+    "M_columns_posterior",
+    "M_rows_posterior",
+    "gamma_entropy",
+    "gamma_log_prior",
+    "xlogx",
+]
+
+
+def w_posterior(
+    data: CaviData, beta: Array, prior_precision: Array, prior_linear: Array
+) -> tuple[Array, FullCovariance | EigenCovariance]:
+    """q*(w_i) for a Gaussian prior with precision ``prior_precision[i] * I``.
+
+    Precision :math:`\\beta\\Psi_i^T\\Psi_i + \\bar\\alpha_i I`; mean
+    :math:`\\Sigma_{w_i}(\\beta\\Psi_i^T y_i + \\ell_i)`, where ``prior_linear``
+    :math:`\\ell_i` is the prior's precision times its mean.  On the fast path the
+    precision is diagonal in the shared eigenbasis for any per-demonstration
+    ``prior_precision`` (mixture: :math:`\\sum_k r_{ik}\\bar\\alpha_k`).
+    """
+    linear = beta * data.psi_t_y + prior_linear
+    gram = data.gram
+    if isinstance(gram, SharedGram):
+        variances = 1.0 / (beta * gram.eigvals[None, :] + prior_precision[:, None])
+        mean = ((linear @ gram.basis) * variances) @ gram.basis.T
+        return mean, EigenCovariance(gram.basis, variances)
+    d = linear.shape[-1]
+    precision = beta * gram.matrices + prior_precision[:, None, None] * jnp.eye(d)
+    chol = jnp.linalg.cholesky(precision)
+    solve = jax.vmap(lambda c, rhs: cho_solve((c, True), rhs))
+    cov = solve(chol, jnp.broadcast_to(jnp.eye(d), precision.shape))
+    cov = 0.5 * (cov + jnp.swapaxes(cov, -1, -2))
+    mean = solve(chol, linear)
+    return mean, FullCovariance(cov)
+
+
+def h_posterior(
+    weights: Array, alpha_mean: Array, MtM: Array, M_mean: Array, offset: Array, gamma: Array
+) -> tuple[Array, Array]:
+    """q*(h_i): precision :math:`r_i\\bar\\alpha E[M^TM] + \\gamma I`, mean :math:`\\Sigma_{h_i} r_i\\bar\\alpha\\bar M^T(\\mu_{w_i}-\\mu_b)`."""
+    V = MtM.shape[0]
+    precision = (weights * alpha_mean)[:, None, None] * MtM + gamma * jnp.eye(V)
+    chol = jnp.linalg.cholesky(precision)
+    solve = jax.vmap(lambda c, rhs: cho_solve((c, True), rhs))
+    cov = solve(chol, jnp.broadcast_to(jnp.eye(V), precision.shape))
+    cov = 0.5 * (cov + jnp.swapaxes(cov, -1, -2))
+    mean = solve(chol, (weights * alpha_mean)[:, None] * (offset @ M_mean))
+    return mean, cov
+
+
+def b_posterior(
+    weights: Array, alpha_mean: Array, w_mean: Array, h_mean: Array, M_mean: Array, lambda0: Array
+) -> tuple[Array, Array]:
+    """q*(b): :math:`\\sigma_b = (\\bar\\alpha\\sum_i r_i + \\lambda_0)^{-1}`, :math:`\\mu_b = \\sigma_b\\bar\\alpha\\sum_i r_i(\\mu_{w_i} - \\bar M\\mu_{h_i})`."""
+    var = 1.0 / (alpha_mean * jnp.sum(weights) + lambda0)
+    mean = var * alpha_mean * (weights @ (w_mean - h_mean @ M_mean.T))
+    return mean, var
+
+
+def M_columns_posterior(
+    weights: Array, alpha_mean: Array, hhT: Array, offset: Array, h_mean: Array, lam_mean: Array
+) -> tuple[Array, Array]:
+    """Joint column-wise q*(m_1..m_V) from S = sum r_i E[h_i h_i^T], R = sum r_i (mu_wi - mu_b) mu_hi^T.
+
+    :math:`\\bar M(\\bar\\alpha S + \\operatorname{diag}\\bar\\lambda) = \\bar\\alpha R`,
+    :math:`\\sigma_{m_v} = (\\bar\\alpha S_{vv} + \\bar\\lambda_v)^{-1}`.
+    """
+    S = jnp.einsum("i,iuv->uv", weights, hhT)
+    R = jnp.einsum("i,id,iv->dv", weights, offset, h_mean)
+    A = alpha_mean * S + jnp.diag(lam_mean)
+    mean = jnp.linalg.solve(A, alpha_mean * R.T).T
+    var = 1.0 / (alpha_mean * jnp.diagonal(S) + lam_mean)
+    return mean, var
+
+
+def M_rows_posterior(
+    weights: Array, alpha_mean: Array, hhT: Array, offset: Array, h_mean: Array, lam_mean: Array
+) -> tuple[Array, Array]:
+    """Row-wise q*(M): rows :math:`\\mathcal N(\\mu_{j\\cdot}, A^{-1})`, :math:`A = \\bar\\alpha S + \\operatorname{diag}\\bar\\lambda`, :math:`\\bar M = \\bar\\alpha R A^{-1}`."""
+    S = jnp.einsum("i,iuv->uv", weights, hhT)
+    R = jnp.einsum("i,id,iv->dv", weights, offset, h_mean)
+    V = S.shape[0]
+    A = alpha_mean * S + jnp.diag(lam_mean)
+    chol = jnp.linalg.cholesky(A)
+    cov = cho_solve((chol, True), jnp.eye(V))
+    cov = 0.5 * (cov + cov.T)
+    mean = cho_solve((chol, True), alpha_mean * R.T).T
+    return mean, cov
+
+
+def gamma_entropy(shape: Array, rate: Array) -> Array:
+    """Entropy of :math:`\\Gamma(\\text{shape}, \\text{rate})`."""
+    return shape - jnp.log(rate) + gammaln(shape) + (1.0 - shape) * digamma(shape)
+
+
+def gamma_log_prior(shape0: Array, rate0: Array, log_mean: Array, mean: Array) -> Array:
+    """:math:`E_q[\\log\\Gamma(x\\mid a_0, b_0)]` from :math:`E[\\log x]` and :math:`E[x]`."""
+    return shape0 * jnp.log(rate0) - gammaln(shape0) + (shape0 - 1.0) * log_mean - rate0 * mean
+
+
+def xlogx(x: Array) -> Array:
+    """:math:`x\\log x` with :math:`0\\log 0 = 0`."""
+    safe = jnp.where(x > 0, x, 1.0)
+    return jnp.where(x > 0, x * jnp.log(safe), 0.0)

@@ -1,0 +1,296 @@
+r"""The state of the CAVI engine: one variational family for the single-type LMProMP and the mixture.
+
+Model (thesis Sec. 4.1 and 4.2, eq. 4.8, with the Dirichlet prior of
+:func:`lmpromp_ppl.models.mixture.mixture_model`; precisions, Gamma shape/rate):
+
+.. math::
+
+    \pi &\sim \mathrm{Dir}(\kappa_0 1_K), \quad z_i \sim \mathrm{Cat}(\pi), \quad
+    b_k \sim \mathcal N(0, \lambda_0^{-1} I_d), \quad
+    \lambda_{kv} \sim \Gamma(c_0, d_0), \quad
+    m_{kv} \sim \mathcal N(0, \lambda_{kv}^{-1} I_d), \quad
+    \alpha_k \sim \Gamma(a_0, b_0), \\
+    h_{ik} &\sim \mathcal N(0, \gamma^{-1} I_V), \quad
+    w_i \mid z_i = k \sim \mathcal N(b_k + M_k h_{ik}, \alpha_k^{-1} I_d), \quad
+    y_i \sim \mathcal N(\Psi_i w_i, \beta^{-1} I), \quad
+    \beta \sim \Gamma(\beta_{a0}, \beta_{b0})\ \text{(when learned)}.
+
+The single-type LMProMP (Sec. 4.1) is K = 1 without z and pi: its state has
+``resp`` and ``pi_conc`` set to ``None`` and its bound is the mixture's with
+K = 1 (the terms in pi and z vanish).  Every state has the component axis.
+
+Variational family (eq. 4.3, Sec. 4.2.1): :math:`q(z_i) = \mathrm{Cat}(r_i)`,
+:math:`q(\pi) = \mathrm{Dir}(\hat\kappa)`, per component :math:`q(b_k)`,
+:math:`q(M_k)`, :math:`q(\alpha_k)`, :math:`q(\lambda_{kv})`, :math:`q(h_{ik})`
+for every i and k, shared :math:`q(w_i)`, and :math:`q(\beta) = \Gamma(\hat a_\beta, \hat b_\beta)`
+when beta is learned.  Two families for M (:data:`FAMILIES`):
+
+* ``"columnwise"`` (thesis eq. 4.3, the default):
+  :math:`q(m_{kv}) = \mathcal N(\mu_{kv}, \sigma_{kv} I_d)`; ``M_var`` is (K, V);
+* ``"rowwise"`` (variational Bayesian PCA): the rows of :math:`M_k` share one full
+  covariance, :math:`q(M_k) = \prod_j \mathcal N(m_{k,j\cdot} \mid \mu_{k,j\cdot}, \Sigma_{M_k})`;
+  ``M_var`` is (K, V, V).  The column-wise family is the special case of a
+  diagonal :math:`\Sigma_{M_k}`.
+
+Removed components (Sec. 4.2.1) are kept in the arrays and switched off by the
+boolean ``active`` mask: they get :math:`r_{ik} = 0`, their factors are frozen,
+and their terms are left out of the bound (the bound of the declared model for
+the family in which a removed component's parameters are distributed as under
+their prior).  Derivations and thesis errata: ``docs/derivation.md``.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jax import Array
+from jax.scipy.special import digamma
+
+from lmpromp_ppl.errors import LmprompError
+from lmpromp_ppl.inference.cavi.data import EigenCovariance, FullCovariance, cov_trace
+from lmpromp_ppl.models.hyper import Hyperparameters
+
+__all__ = [
+    "FAMILIES",
+    "check_family",
+    "CaviHyper",
+    "hyper_arrays",
+    "CaviState",
+    "CaviInfo",
+    "family_of",
+    "is_mixture",
+    "lift_single_type",
+    "ExpectedStats",
+    "expected_stats",
+    "keep_active",
+]
+
+#: Names of the families of q(M): the thesis's column-wise isotropic one (default) and the row-wise one.
+FAMILIES = ("columnwise", "rowwise")
+
+
+def check_family(family: str) -> None:
+    """Refuse an unknown family of q(M)."""
+    if family not in FAMILIES:
+        raise LmprompError(f"unknown family {family!r} for q(M); choose from {list(FAMILIES)}")
+
+
+class CaviHyper(NamedTuple):
+    """Hyperparameters (and the pruning threshold) as float64 scalars, so compiled code is shared across values.
+
+    Attributes
+    ----------
+    beta : fixed noise precision :math:`\\beta` (ignored when the state has ``q(beta)``)
+    lambda0 : prior precision :math:`\\lambda^{[0]}` of ``b``
+    gamma : prior precision :math:`\\gamma` of ``h``
+    a0, b0 : Gamma shape/rate of :math:`\\alpha`
+    c0, d0 : Gamma shape/rate of :math:`\\lambda_v`
+    kappa0 : Dirichlet concentration of :math:`\\pi` (mixture)
+    beta_a0, beta_b0 : Gamma shape/rate of :math:`\\beta` when learned
+    prune_threshold : a component is removed when its expected number of
+        demonstrations :math:`N_k = \\sum_i r_{ik}` falls below this (an algorithm
+        setting, not part of the model; Sec. 4.2.1)
+    """
+
+    beta: Array
+    lambda0: Array
+    gamma: Array
+    a0: Array
+    b0: Array
+    c0: Array
+    d0: Array
+    kappa0: Array
+    beta_a0: Array
+    beta_b0: Array
+    prune_threshold: Array
+
+
+def hyper_arrays(hyper: Hyperparameters, prune_threshold: float = 0.5) -> CaviHyper:
+    """Build :class:`CaviHyper` from a :class:`Hyperparameters`."""
+    values = [getattr(hyper, name) for name in CaviHyper._fields[:-1]] + [prune_threshold]
+    return CaviHyper(*(jnp.asarray(v, jnp.float64) for v in values))
+
+
+class CaviState(NamedTuple):
+    """Parameters of every factor of q (eq. 4.3 and Sec. 4.2.1, with the extensions of the module docstring).
+
+    Attributes
+    ----------
+    w_mean : (L, d) :math:`\\mu_{w_i}`
+    w_cov : :class:`FullCovariance` or :class:`EigenCovariance`, :math:`\\Sigma_{w_i}`
+    h_mean : (L, K, V) :math:`\\mu_{h_{ik}}`
+    h_cov : (L, K, V, V) :math:`\\Sigma_{h_{ik}}`
+    b_mean : (K, d) :math:`\\mu_{b_k}`
+    b_var : (K,) :math:`\\sigma_{b_k}` (variances)
+    M_mean : (K, d, V) :math:`\\bar M_k`
+    M_var : (K, V) column variances :math:`\\sigma_{kv}` (``"columnwise"``) or
+        (K, V, V) the shared row covariance :math:`\\Sigma_{M_k}` (``"rowwise"``)
+    alpha_shape, alpha_rate : (K,) :math:`\\bar a_k, \\bar b_k`
+    lam_shape, lam_rate : (K, V) :math:`\\bar c_{kv}, \\bar d_{kv}`
+    resp : (L, K) responsibilities :math:`r_{ik} = q(z_i = k)`; ``None`` for the single type
+    pi_conc : (K,) Dirichlet concentration :math:`\\hat\\kappa` of q(pi); ``None`` for the single type
+    beta_shape, beta_rate : () Gamma q(beta), used when ``beta_learned``
+    beta_learned : () bool, beta has the factor q(beta) (else the fixed ``hyper.beta``)
+    active : (K,) bool, False for removed components
+
+    Whether beta is learned is an array (not the pytree structure) so that
+    fixed and learned beta share compiled code.
+    """
+
+    w_mean: Array
+    w_cov: FullCovariance | EigenCovariance
+    h_mean: Array
+    h_cov: Array
+    b_mean: Array
+    b_var: Array
+    M_mean: Array
+    M_var: Array
+    alpha_shape: Array
+    alpha_rate: Array
+    lam_shape: Array
+    lam_rate: Array
+    resp: Array | None
+    pi_conc: Array | None
+    beta_shape: Array
+    beta_rate: Array
+    beta_learned: Array
+    active: Array
+
+
+class CaviInfo(NamedTuple):
+    """Per-sweep information: the ELBO after the sweep."""
+
+    elbo: Array
+
+
+def family_of(state: CaviState) -> str:
+    """``"rowwise"`` when ``M_var`` holds (V, V) covariances, else ``"columnwise"``."""
+    return "rowwise" if state.M_var.ndim == 3 else "columnwise"
+
+
+def is_mixture(state: CaviState) -> bool:
+    """Whether the state has q(z) and q(pi) (the mixture) rather than the single type."""
+    return state.resp is not None
+
+
+def lift_single_type(fields: dict, family: str = "columnwise", beta: tuple[float, float] | None = None) -> CaviState:
+    """A :class:`CaviState` (K = 1) from the fields of a single-type state without component axis.
+
+    ``fields`` has ``w_mean``, ``w_cov``, ``h_mean`` (L, V), ``h_cov``, ``b_mean`` (d,),
+    ``b_var`` (), ``M_mean`` (d, V), ``M_var`` (V,), ``alpha_shape``, ``alpha_rate``,
+    ``lam_shape``, ``lam_rate`` (V,), as the thesis writes the family (eq. 4.3) and as fits
+    saved before the component axis hold them.  ``family="rowwise"`` turns the column
+    variances into a diagonal row covariance (the same distribution); ``beta=(shape, rate)``
+    adds q(beta).
+    """
+    check_family(family)
+    shape, rate = (1.0, 1.0) if beta is None else beta
+    f64 = lambda x: jnp.asarray(x, jnp.float64)  # noqa: E731
+    M_var = f64(fields["M_var"])[None]
+    if family == "rowwise":
+        M_var = jax.vmap(jnp.diag)(M_var)
+    return CaviState(
+        w_mean=fields["w_mean"],
+        w_cov=fields["w_cov"],
+        h_mean=f64(fields["h_mean"])[:, None],
+        h_cov=f64(fields["h_cov"])[:, None],
+        b_mean=f64(fields["b_mean"])[None],
+        b_var=f64(fields["b_var"])[None],
+        M_mean=f64(fields["M_mean"])[None],
+        M_var=M_var,
+        alpha_shape=f64(fields["alpha_shape"])[None],
+        alpha_rate=f64(fields["alpha_rate"])[None],
+        lam_shape=f64(fields["lam_shape"])[None],
+        lam_rate=f64(fields["lam_rate"])[None],
+        resp=None,
+        pi_conc=None,
+        beta_shape=f64(shape),
+        beta_rate=f64(rate),
+        beta_learned=jnp.asarray(beta is not None),
+        active=jnp.ones((1,), jnp.bool_),
+    )
+
+
+class ExpectedStats(NamedTuple):
+    """Moments of q shared by the updates and the bound.
+
+    Attributes
+    ----------
+    resp : (L, K) responsibilities, 0 for removed components (ones (L, 1) for the single type)
+    alpha_mean, log_alpha_mean : (K,) :math:`\\bar\\alpha_k = \\bar a_k/\\bar b_k`, :math:`E[\\log\\alpha_k]`
+    lam_mean, log_lam_mean : (K, V)
+    M_col_var : (K, V) :math:`d^{-1}E\\|m_{kv} - \\mu_{kv}\\|^2` (the diagonal of the row covariance)
+    MtM : (K, V, V) :math:`E[M_k^TM_k] = \\bar M_k^T\\bar M_k + d\\Sigma_{M_k}`
+    hhT : (L, K, V, V) :math:`E[h_{ik}h_{ik}^T]`
+    residual_sq : (L, K) :math:`E\\|w_i - b_k - M_kh_{ik}\\|^2`
+    beta_mean, log_beta_mean : () :math:`E[\\beta]`, :math:`E[\\log\\beta]` (the fixed value when not learned)
+    log_pi_mean : (K,) :math:`E[\\log\\pi_k] = \\psi(\\hat\\kappa_k) - \\psi(\\sum_j\\hat\\kappa_j)`, or None
+    """
+
+    resp: Array
+    alpha_mean: Array
+    log_alpha_mean: Array
+    lam_mean: Array
+    log_lam_mean: Array
+    M_col_var: Array
+    MtM: Array
+    hhT: Array
+    residual_sq: Array
+    beta_mean: Array
+    log_beta_mean: Array
+    log_pi_mean: Array | None
+
+
+def expected_stats(state: CaviState, hyper: CaviHyper) -> ExpectedStats:
+    """Moments of q (App. B.1 helper functions 3 and 4 with the factor d kept; App. B.2 per component)."""
+    L, d = state.w_mean.shape
+    K = state.M_mean.shape[0]
+    if state.M_var.ndim == 3:
+        M_col_var = jnp.diagonal(state.M_var, axis1=-2, axis2=-1)
+        M_cov = state.M_var
+    else:
+        M_col_var = state.M_var
+        M_cov = jax.vmap(jnp.diag)(state.M_var)
+    MtM = jnp.einsum("kdu,kdv->kuv", state.M_mean, state.M_mean) + d * M_cov
+    hhT = state.h_cov + jnp.einsum("iku,ikv->ikuv", state.h_mean, state.h_mean)
+    offset = state.w_mean[:, None, :] - state.b_mean[None]
+    residual_sq = (
+        jnp.sum(offset**2, axis=-1)
+        + cov_trace(state.w_cov)[:, None]
+        + d * state.b_var[None]
+        - 2.0 * jnp.einsum("ikd,kdv,ikv->ik", offset, state.M_mean, state.h_mean)
+        + jnp.einsum("kuv,ikvu->ik", MtM, hhT)
+    )
+    if state.resp is None:
+        resp = jnp.ones((L, K))
+        log_pi_mean = None
+    else:
+        resp = jnp.where(state.active[None], state.resp, 0.0)
+        log_pi_mean = digamma(state.pi_conc) - digamma(jnp.sum(state.pi_conc))
+    learned = state.beta_learned
+    beta_mean = jnp.where(learned, state.beta_shape / state.beta_rate, hyper.beta)
+    log_beta_mean = jnp.where(
+        learned, digamma(state.beta_shape) - jnp.log(state.beta_rate), jnp.log(hyper.beta)
+    )
+    return ExpectedStats(
+        resp=resp,
+        alpha_mean=state.alpha_shape / state.alpha_rate,
+        log_alpha_mean=digamma(state.alpha_shape) - jnp.log(state.alpha_rate),
+        lam_mean=state.lam_shape / state.lam_rate,
+        log_lam_mean=digamma(state.lam_shape) - jnp.log(state.lam_rate),
+        M_col_var=M_col_var,
+        MtM=MtM,
+        hhT=hhT,
+        residual_sq=residual_sq,
+        beta_mean=beta_mean,
+        log_beta_mean=log_beta_mean,
+        log_pi_mean=log_pi_mean,
+    )
+
+
+def keep_active(active: Array, new: Array, old: Array) -> Array:
+    """``new`` for active components (leading K axis), ``old`` (frozen) for removed ones."""
+    mask = active.reshape(active.shape + (1,) * (new.ndim - 1))
+    return jnp.where(mask, new, old)

@@ -1,0 +1,102 @@
+"""The one registry of model declarations: names, collapse choices and the NumPyro functions.
+
+Every engine finds its model here.  ``collapsed`` has one spelling per
+choice: ``"none"`` (the full model), ``"w"`` (weights integrated out), ``"wh"``
+(weights and control variables integrated out) and ``"auto"`` (the measured
+reliable choice for NUTS: ``"wh"`` for the LMProMP and the mixture, ``"w"`` for
+the ProMP, which has no ``h``).
+"""
+
+from __future__ import annotations
+
+import inspect
+from functools import partial
+from typing import Callable
+
+from lmpromp_ppl.errors import LmprompError
+from lmpromp_ppl.models.collapsed import (
+    lmpromp_collapsed_model,
+    mixture_collapsed_model,
+    promp_collapsed_model,
+)
+from lmpromp_ppl.models.lmpromp import lmpromp_model
+from lmpromp_ppl.models.mixture import mixture_model
+from lmpromp_ppl.models.promp import promp_model
+
+__all__ = ["MODEL_NAMES", "COLLAPSE_CHOICES", "check_model", "resolve_collapse", "model_function", "get_model"]
+
+#: The models of docs/cli.md.
+MODEL_NAMES = ("promp", "lmpromp", "mixture")
+#: The values of ``collapsed``.
+COLLAPSE_CHOICES = ("auto", "none", "w", "wh")
+
+_ALIASES = {"lmpromp_mixture": "mixture"}
+_FULL = {"promp": promp_model, "lmpromp": lmpromp_model, "mixture": mixture_model}
+_COLLAPSED = {
+    "promp": promp_collapsed_model,
+    "lmpromp": lmpromp_collapsed_model,
+    "mixture": mixture_collapsed_model,
+}
+
+
+def check_model(name: str) -> str:
+    """The model's name (aliases resolved); an unknown one is a :class:`LmprompError`."""
+    key = _ALIASES.get(name, name)
+    if key not in _FULL:
+        raise LmprompError(f"unknown model {name!r}; choose from {list(MODEL_NAMES)}")
+    return key
+
+
+def resolve_collapse(model_name: str, collapsed: str) -> str:
+    """``collapsed`` resolved for ``model_name``: ``"none"``, ``"w"`` or ``"wh"`` (``"auto"`` chosen)."""
+    model_name = check_model(model_name)
+    if collapsed not in COLLAPSE_CHOICES:
+        raise LmprompError(f"collapsed must be one of {list(COLLAPSE_CHOICES)}, got {collapsed!r}")
+    if collapsed == "auto":
+        return "w" if model_name == "promp" else "wh"
+    if collapsed == "wh" and model_name == "promp":
+        raise LmprompError("the ProMP model has no control variables h; use collapsed='w'")
+    return collapsed
+
+
+def model_function(model_name: str, collapsed: str) -> Callable[..., None]:
+    """The NumPyro model ``model(data, hyper)`` for a model name and collapse choice.
+
+    The full mixture is the one with the assignments summed out (``marginalize=True``);
+    the collapsed models are in :mod:`lmpromp_ppl.models.collapsed`.
+    """
+    model_name = check_model(model_name)
+    collapse = resolve_collapse(model_name, collapsed)
+    if collapse == "none":
+        if model_name == "mixture":
+            return partial(mixture_model, marginalize=True)
+        return _FULL[model_name]
+    if model_name == "promp":
+        return promp_collapsed_model
+    return partial(_COLLAPSED[model_name], collapse_h=collapse == "wh")
+
+
+def get_model(name: str, collapsed: bool = False, **options) -> Callable[..., None]:
+    """The NumPyro model called ``name``, to be called as ``model(data, hyper, ...)``.
+
+    Parameters
+    ----------
+    name : ``"promp"``, ``"lmpromp"`` or ``"mixture"`` (alias ``"lmpromp_mixture"``)
+    collapsed : the variant with ``w`` integrated out (:mod:`lmpromp_ppl.models.collapsed`)
+    **options : keyword arguments bound to the model, e.g. ``marginalize=False``
+        (full mixture) or ``collapse_h=True`` (collapsed lmpromp / mixture)
+
+    Raises
+    ------
+    LmprompError
+        for an unknown name or option.
+    """
+    key = check_model(name)
+    model = (_COLLAPSED if collapsed else _FULL)[key]
+    accepted = set(inspect.signature(model).parameters) - {"data", "hyper", "observed"}
+    unknown = sorted(set(options) - accepted)
+    if unknown:
+        raise LmprompError(
+            f"model {name!r} (collapsed={collapsed}) takes no option {unknown}; it takes {sorted(accepted)}"
+        )
+    return partial(model, **options) if options else model
