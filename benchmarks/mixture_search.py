@@ -45,12 +45,12 @@ SETTINGS = {
 
 def oracle_elbo(spec: str, hyper, num_basis: int) -> float:
     """Final bound of plain CAVI started at the labels (one component per label)."""
-    from lmpromp_ppl.api import prepare
+    from lmpromp_ppl.data import prepare_dataset
     from lmpromp_ppl.inference import cavi
     from lmpromp_ppl.inference.cavi import search
 
-    prepared = prepare(spec, num_basis)
-    raw, data = prepared.raw, cavi.prepare_cavi_data(prepared.model_data)
+    prepared = prepare_dataset(spec, num_basis)
+    raw, data = prepared.raw, cavi.sufficient_statistics(prepared.model_data)
     hyper_arr = cavi.hyper_arrays(hyper)
     _, codes = np.unique(raw.labels, return_inverse=True)
     if codes.max() >= hyper.num_components:

@@ -16,14 +16,14 @@ from lmpromp_ppl.data.core import Demonstrations
 from lmpromp_ppl.data.prepared import PreparedDataset, prepare_dataset
 from lmpromp_ppl.diagnostics.degeneracy import result_warnings
 from lmpromp_ppl.errors import LmprompError
-from lmpromp_ppl.inference.registry import ENGINE_OPTIONS, ENGINES, MIXTURE_OPTIONS, check_fit, guide_of
+from lmpromp_ppl.inference.registry import ENGINE_OPTIONS, ENGINES, MIXTURE_OPTIONS, check_fit, run_engine
 from lmpromp_ppl.models.hyper import Hyperparameters, preset
 from lmpromp_ppl.models.registry import MODEL_NAMES as MODELS
 from lmpromp_ppl.results import FitResult
 
 __all__ = [
     "MODELS", "ENGINES", "ENGINE_OPTIONS", "MIXTURE_OPTIONS", "AUTO_NUM_BASIS",
-    "fit", "select_num_basis", "resolve_num_basis", "prepare", "observed_arrays", "adjusted_rand_index",
+    "fit", "select_num_basis", "resolve_num_basis", "observed_arrays", "adjusted_rand_index",
 ]
 
 
@@ -59,13 +59,6 @@ def resolve_num_basis(num_basis: int | str | None, model: str) -> int | str:
     return num_basis
 
 
-def prepare(data: Demonstrations | str, num_basis: int, *, standardise: bool = True,
-            width: float = DEFAULT_WIDTH) -> PreparedDataset:
-    """Load (if a dataset string), standardise and build model inputs once
-    (:func:`lmpromp_ppl.data.prepare_dataset`); pass the result to :func:`fit` and the diagnostics."""
-    return prepare_dataset(data, num_basis, standardise=standardise, width=width)
-
-
 def fit(
     data: Demonstrations | str | PreparedDataset,
     model: str = "lmpromp",
@@ -84,7 +77,7 @@ def fit(
     Parameters
     ----------
     data : Demonstrations, a dataset string (``"lasa:GShape"``, ``"gunpoint"``, a file path), or a
-        :class:`~lmpromp_ppl.data.PreparedDataset` (:func:`prepare`) whose model inputs are used as
+        :class:`~lmpromp_ppl.data.PreparedDataset` (:func:`~lmpromp_ppl.data.prepare_dataset`) whose model inputs are used as
         they are (``num_basis``, ``width`` and ``standardise`` must then be left at their defaults)
     model : ``"promp"``, ``"lmpromp"`` or ``"mixture"``
     engine : ``"cavi"``, ``"nuts"``, ``"svi_meanfield"``, ``"svi_autonormal"`` or ``"svi_lowrank"``
@@ -147,11 +140,11 @@ def _fit_prepared(prepared: PreparedDataset, model, engine, hyper, *, seed, prog
     )
     key = jax.random.key(seed)
     if engine == "cavi":
-        result = _fit_cavi(mdata, key, progress, common, options, raw.labels)
+        result = _cavi_result(mdata, key, progress, common, options, raw.labels)
     elif engine == "nuts":
-        result = _fit_nuts(mdata, key, progress, common, options)
+        result = _nuts_result(mdata, key, progress, common, options)
     else:
-        result = _fit_svi(mdata, key, progress, common, options)
+        result = _svi_result(mdata, key, progress, common, options)
     result.summary["warnings"] = result_warnings(result)
     return result
 
@@ -226,10 +219,10 @@ def _fit_auto_basis(data, model, engine, hyper, *, width, seed, standardise, pro
     return result
 
 
-def _fit_cavi(mdata, key, progress, common, options, labels=None) -> FitResult:
+def _cavi_result(mdata, key, progress, common, options, labels=None) -> FitResult:
     from lmpromp_ppl.inference import cavi
 
-    res = cavi.fit(mdata, common["hyper"], key, mixture=common["model"] == "mixture", progress=progress, **options)
+    res = run_engine("cavi", common["model"], mdata, common["hyper"], key, progress=progress, **options)
     summary = {
         "elbo": float(res.elbo),
         "elbo_trace": np.asarray(res.elbo_trace).tolist(),
@@ -255,10 +248,8 @@ def _fit_cavi(mdata, key, progress, common, options, labels=None) -> FitResult:
     )
 
 
-def _fit_nuts(mdata, key, progress, common, options) -> FitResult:
-    from lmpromp_ppl.inference import nuts
-
-    res = nuts.run_nuts(common["model"], mdata, common["hyper"], key, progress=progress, **options)
+def _nuts_result(mdata, key, progress, common, options) -> FitResult:
+    res = run_engine("nuts", common["model"], mdata, common["hyper"], key, progress=progress, **options)
     draws = {k: np.asarray(v) for k, v in res.samples.items()}
     point = {k: v.mean(axis=(0, 1)) for k, v in draws.items()}
     summary = {
@@ -275,12 +266,9 @@ def _fit_nuts(mdata, key, progress, common, options) -> FitResult:
     )
 
 
-def _fit_svi(mdata, key, progress, common, options) -> FitResult:
-    from lmpromp_ppl.inference import svi
-
-    guide = guide_of(common["engine"])
+def _svi_result(mdata, key, progress, common, options) -> FitResult:
     fit_key, draw_key = jax.random.split(key)
-    res = svi.run_svi(common["model"], mdata, common["hyper"], fit_key, guide=guide, progress=progress, **options)
+    res = run_engine(common["engine"], common["model"], mdata, common["hyper"], fit_key, progress=progress, **options)
     loss = np.asarray(res.loss_trace)
     draws = {k: np.asarray(v) for k, v in res.sample(draw_key, 1000).items()}
     summary = {

@@ -1,6 +1,6 @@
 """Output targets of a command: directories and files that are never overwritten silently.
 
-Directories created by :func:`prepare_out_dir` and :func:`prepare_out_file`
+Directories created by :func:`claim_out_dir` and :func:`claim_out_file`
 while a command runs are recorded; when the command fails,
 :func:`lmpromp_ppl.cli.main` removes those of them that are still empty
 (:func:`remove_created_dirs`), so a failed command leaves no empty ``--out``
@@ -14,7 +14,7 @@ from pathlib import Path
 
 from lmpromp_ppl.errors import LmprompError
 
-__all__ = ["prepare_out_dir", "prepare_out_file", "make_dirs", "start_recording", "stop_recording",
+__all__ = ["claim_out_dir", "claim_out_file", "make_dirs", "start_recording", "stop_recording",
            "remove_created_dirs"]
 
 _created: list[Path] | None = None
@@ -55,7 +55,7 @@ def make_dirs(path: Path) -> None:
         _created.extend(p.absolute() for p in missing)
 
 
-def prepare_out_dir(out: Path, force: bool) -> Path:
+def claim_out_dir(out: Path, force: bool) -> Path:
     """Create ``out``; refuse an existing non-empty directory unless ``force``.
 
     With ``force`` the directory is kept and only the files the command writes
@@ -71,7 +71,7 @@ def prepare_out_dir(out: Path, force: bool) -> Path:
     return out
 
 
-def prepare_out_file(out: Path, force: bool) -> Path:
+def claim_out_file(out: Path, force: bool) -> Path:
     """Refuse an existing file unless ``force``; create the parent directory."""
     out = Path(out)
     if out.exists() and not force:

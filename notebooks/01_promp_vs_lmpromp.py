@@ -57,15 +57,15 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 import lmpromp_ppl as lp
-from lmpromp_ppl.api import prepare
+from lmpromp_ppl.data import prepare_dataset
 from lmpromp_ppl.basis import design_matrix, rbf_basis
-from lmpromp_ppl.inference.cavi import prepare_cavi_data, ridge_weights
+from lmpromp_ppl.inference.cavi import sufficient_statistics, ridge_weights
 from lmpromp_ppl.predict import (
     condition,
     prior,
     sample_trajectories,
     trajectory_distribution,
-    unstandardize,
+    unstandardise,
     unstandardize_samples,
     via_point,
 )
@@ -102,10 +102,10 @@ plt.tight_layout()
 # weight vector $w_i$; $\Psi w_i$ reproduces the demonstration.
 
 # %%
-prepared = prepare(SPEC, NUM_BASIS)  # loaded, standardised and turned into model inputs once
+prepared = prepare_dataset(SPEC, NUM_BASIS)  # loaded, standardised and turned into model inputs once
 spec, raw, scaled, scaling, mdata = prepared.spec, prepared.raw, prepared.scaled, prepared.scaling, prepared.model_data
 D, J = raw.num_dofs, NUM_BASIS
-W = ridge_weights(prepare_cavi_data(mdata))  # (L, D*J), standardised space
+W = ridge_weights(sufficient_statistics(mdata))  # (L, D*J), standardised space
 L, d = W.shape
 print(raw, f"-> L={L} demonstrations, d={d} weights")
 
@@ -148,7 +148,7 @@ def plot_distribution(ax, weights, color, label, key=0, n=NUM_PATHS):
     )
     for p in np.asarray(paths):
         ax.plot(p[:, 0], p[:, 1], color=color, lw=0.6, alpha=0.4)
-    mean = unstandardize(trajectory_distribution(weights, phase, num_dofs=D, num_basis=J), scaling).mean
+    mean = unstandardise(trajectory_distribution(weights, phase, num_dofs=D, num_basis=J), scaling).mean
     ax.plot(*np.asarray(mean).T, color=color, lw=2.5, label=label)
 
 
@@ -278,7 +278,7 @@ plt.tight_layout()
 print("E[h | via-point] (LMProMP):", np.round(np.asarray(post_lm.latent.means[0]), 2))
 print("target:", np.round(target, 2))
 for name, post in posts.items():
-    m = unstandardize(trajectory_distribution(post.weights, np.array([z_via]), num_dofs=D, num_basis=J), scaling)
+    m = unstandardise(trajectory_distribution(post.weights, np.array([z_via]), num_dofs=D, num_basis=J), scaling)
     miss = float(np.linalg.norm(np.asarray(m.mean[0]) - target))
     print(f"{name:>24}: mean at phase {z_via} = {np.round(np.asarray(m.mean[0]), 2)}, {miss:.2f} mm from the target")
 

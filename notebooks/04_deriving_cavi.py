@@ -58,7 +58,7 @@ import numpyro.distributions as dist
 from numpyro.infer.util import log_density
 
 import lmpromp_ppl as lp
-from lmpromp_ppl.api import prepare
+from lmpromp_ppl.data import prepare_dataset
 from lmpromp_ppl.inference import cavi
 from lmpromp_ppl.inference.cavi import init_state
 from lmpromp_ppl.models.lmpromp import lmpromp_model
@@ -105,8 +105,8 @@ plt.rcParams.update({"figure.dpi": 90, "axes.grid": True, "grid.alpha": 0.3})
 
 # %%
 hyper = lp.Hyperparameters(latent_dim=2, beta=400.0)
-mdata = prepare("synthetic:latent?L=12&D=2&J=5&V=2&T=20&beta=400&seed=3", 5).model_data
-data = cavi.prepare_cavi_data(mdata)
+mdata = prepare_dataset("synthetic:latent?L=12&D=2&J=5&V=2&T=20&beta=400&seed=3", 5).model_data
+data = cavi.sufficient_statistics(mdata)
 H = cavi.hyper_arrays(hyper)
 state = init_state(data, hyper, key=jax.random.key(0))
 for _ in range(2):

@@ -41,7 +41,7 @@ def result():
 def test_shared_cavi_data_equals_prepare_cavi_data():
     demos = bench.row_demonstrations(bench.RowSpec("x", L=5, D=2, J=4, V=2, T=15, seed=3))
     fast = bench.shared_cavi_data(demos, 4)
-    ref = cavi.prepare_cavi_data(model_data(demos, 4))
+    ref = cavi.sufficient_statistics(model_data(demos, 4))
     assert isinstance(ref.gram, cavi.SharedGram)
     for name in ("psi_t_y", "y_sq", "num_obs"):
         np.testing.assert_allclose(getattr(fast, name), getattr(ref, name), rtol=1e-12, atol=1e-12)

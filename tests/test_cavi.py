@@ -26,7 +26,7 @@ from jax.scipy.special import digamma
 from numpyro.infer.util import log_density
 
 from lmpromp_ppl.basis import design_matrix
-from lmpromp_ppl.data import Demonstrations, ModelData, load_dataset, model_data, standardize
+from lmpromp_ppl.data import Demonstrations, ModelData, load_dataset, model_data, standardise
 from lmpromp_ppl.errors import ConvergenceWarning, DataError, LmprompError
 from lmpromp_ppl.inference import cavi
 from lmpromp_ppl.inference.cavi import init_state
@@ -86,7 +86,7 @@ def _real(spec: str, num_demos: int, every: int, num_basis: int) -> ModelData:
         dof_names=demos.dof_names,
         name=demos.name,
     )
-    demos, _ = standardize(demos)
+    demos, _ = standardise(demos)
     return model_data(demos, num_basis)
 
 
@@ -169,7 +169,7 @@ def _stationary(before_norm, after_norm, value):
 # --------------------------------------------------------------------------- monotone
 @pytest.mark.parametrize("name", ["synthetic-shared", "synthetic-missing", "lasa", "gunpoint"])
 def test_elbo_never_decreases_after_any_factor_update(datasets, name):
-    data = cavi.prepare_cavi_data(datasets[name])
+    data = cavi.sufficient_statistics(datasets[name])
     hyper = HYPER if name.startswith("synthetic") else Hyperparameters(latent_dim=V)
     hyper_arr = cavi.hyper_arrays(hyper)
     state = init_state(data, hyper, key=jax.random.key(3))  # a perturbed start: far from optimal
@@ -188,7 +188,7 @@ def test_elbo_never_decreases_after_any_factor_update(datasets, name):
 @pytest.fixture(scope="module")
 def midway(small):
     """A state on the general path two sweeps after a perturbed start: no factor is optimal."""
-    data = cavi.prepare_cavi_data(small["missing"])
+    data = cavi.sufficient_statistics(small["missing"])
     state = init_state(data, HYPER, key=jax.random.key(4))
     for _ in range(2):
         state, _ = _sweep_elbos(state, data, HYPER_ARR)
@@ -374,8 +374,8 @@ def test_closed_form_elbo_matches_numpyro_monte_carlo(small, which):
         state = cavi.fit(data, HYPER, jax.random.key(0)).state
     else:  # an arbitrary non-optimal state: shifted means, inflated covariances, moved Gammas
         data = small["missing"]
-        state = _perturb(init_state(cavi.prepare_cavi_data(data), HYPER, key=jax.random.key(5)), seed=6)
-    closed = float(cavi.elbo(state, cavi.prepare_cavi_data(data), HYPER_ARR))
+        state = _perturb(init_state(cavi.sufficient_statistics(data), HYPER, key=jax.random.key(5)), seed=6)
+    closed = float(cavi.elbo(state, cavi.sufficient_statistics(data), HYPER_ARR))
     mean, standard_error = _mc_elbo(jax.random.key(7), state, data)
     assert abs(closed - mean) <= 4.0 * standard_error, (closed, mean, standard_error)
     # the test has the resolution to see the non-constant terms that App. C.1 drops
@@ -463,7 +463,7 @@ def test_ard_on_a_fit_without_structure_reports_none(recovery):
 # --------------------------------------------------------------------------- engineering
 def test_shared_psi_fast_path_equals_general_path(small):
     data = small["shared"]
-    fast, general = cavi.prepare_cavi_data(data, shared_psi=True), cavi.prepare_cavi_data(data, shared_psi=False)
+    fast, general = cavi.sufficient_statistics(data, shared_psi=True), cavi.sufficient_statistics(data, shared_psi=False)
     assert isinstance(fast.gram, cavi.SharedGram) and isinstance(general.gram, cavi.DemoGrams)
     start_fast = init_state(fast, HYPER, key=jax.random.key(8))
     start_general = init_state(general, HYPER, key=jax.random.key(8))
@@ -488,7 +488,7 @@ def test_shared_psi_fast_path_equals_general_path(small):
 def test_fast_path_accepts_per_demonstration_prior_precision(small):
     """Mixture-ready: a different prior precision per demonstration stays diagonal in the U basis."""
     data = small["shared"]
-    fast, general = cavi.prepare_cavi_data(data, shared_psi=True), cavi.prepare_cavi_data(data, shared_psi=False)
+    fast, general = cavi.sufficient_statistics(data, shared_psi=True), cavi.sufficient_statistics(data, shared_psi=False)
     L, d = data.psi.shape[0], data.psi.shape[2]
     precision = jnp.linspace(0.5, 50.0, L)
     linear = jnp.asarray(np.random.default_rng(9).standard_normal((L, d)))
@@ -500,7 +500,7 @@ def test_fast_path_accepts_per_demonstration_prior_precision(small):
 
 
 def test_step_does_not_recompile(small):
-    data = cavi.prepare_cavi_data(small["shared"])
+    data = cavi.sufficient_statistics(small["shared"])
     traces = []
 
     def counted(state, data, hyper):
@@ -522,7 +522,7 @@ def test_restarts_keep_the_best_elbo(small):
     assert len(fit.restart_elbos) == 3
     assert len(set(fit.restart_elbos)) > 1  # restarts start from different points
     assert fit.elbo == max(fit.restart_elbos)
-    assert fit.elbo == pytest.approx(float(cavi.elbo(fit.state, cavi.prepare_cavi_data(small["shared"]), HYPER_ARR)), rel=1e-12)
+    assert fit.elbo == pytest.approx(float(cavi.elbo(fit.state, cavi.sufficient_statistics(small["shared"]), HYPER_ARR)), rel=1e-12)
     assert fit.elbo_trace.shape == (fit.iterations,) and fit.elbo_trace[-1] == fit.elbo
     assert fit.seconds > 0 and fit.compile_seconds >= 0
 
@@ -557,7 +557,7 @@ def test_converged_fit_does_not_warn(small):
 
 
 def test_posterior_summaries_have_contract_shapes(small):
-    state = init_state(cavi.prepare_cavi_data(small["missing"]), HYPER)
+    state = init_state(cavi.sufficient_statistics(small["missing"]), HYPER)
     L, d = small["missing"].psi.shape[0], small["missing"].psi.shape[2]
     n = NUM_DRAWS  # the Gamma sampler compiled for the Monte Carlo test is reused
     draws = cavi.sample_q(jax.random.key(0), state, n)
@@ -574,7 +574,7 @@ def test_invalid_input_is_refused(small):
     with pytest.raises(DataError, match="NaN"):
         cavi.fit(bad, HYPER, jax.random.key(0))
     with pytest.raises(DataError, match="share"):
-        cavi.prepare_cavi_data(small["missing"], shared_psi=True)
+        cavi.sufficient_statistics(small["missing"], shared_psi=True)
     with pytest.raises(LmprompError, match="max_iter"):
         cavi.fit(data, HYPER, jax.random.key(0), max_iter=0)
     # NaN at masked (missing) entries is allowed

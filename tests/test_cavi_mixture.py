@@ -28,7 +28,7 @@ import pytest
 from numpyro.infer.util import log_density
 from sklearn.metrics import adjusted_rand_score
 
-from lmpromp_ppl.data import ModelData, load_dataset, model_data, standardize
+from lmpromp_ppl.data import ModelData, load_dataset, model_data, standardise
 from lmpromp_ppl.data.synthetic import GENERATOR_WIDTH, latent_manifold
 from lmpromp_ppl.errors import LmprompError
 from lmpromp_ppl.inference import cavi
@@ -53,13 +53,13 @@ def _hyper(model: str, learn_beta: bool, base: Hyperparameters = Hyperparameters
 @pytest.fixture(scope="module")
 def small():
     """Four small clusters (L=12, d=6) with missing entries: the general (per-demonstration Gram) path."""
-    demos, _ = standardize(load_dataset(f"synthetic:clusters?L={L}&T=12&radius=0.2&seed=3"))
+    demos, _ = standardise(load_dataset(f"synthetic:clusters?L={L}&T=12&radius=0.2&seed=3"))
     data = model_data(demos, 6, width=0.5)
     rng = np.random.default_rng(0)
     mask = (rng.uniform(size=data.mask.shape) > 0.15).astype(float)
     mask[0, 6:] = 0.0
     data = ModelData(data.psi, jnp.where(mask > 0, data.y, jnp.nan), jnp.asarray(mask))
-    return data, cavi.prepare_cavi_data(data)
+    return data, cavi.sufficient_statistics(data)
 
 
 def _start(model, family, learn_beta, cdata, hyper, key):
@@ -374,7 +374,7 @@ def test_diagonal_row_covariance_is_the_columnwise_distribution(starts, small):
 def clusters():
     demos = load_dataset("synthetic:clusters")
     labels = np.asarray(demos.labels).astype(int)
-    demos, _ = standardize(demos)
+    demos, _ = standardise(demos)
     return model_data(demos, 8, width=GENERATOR_WIDTH), labels  # the generator's basis
 
 

@@ -257,14 +257,14 @@ def test_cavi_log_density_and_model_log_joint_reproduce_the_elbo():
     import jax
 
     import lmpromp_ppl as lp
-    from lmpromp_ppl.api import prepare
+    from lmpromp_ppl.data import prepare_dataset
     from lmpromp_ppl.diagnostics.metrics import model_log_joint
     from lmpromp_ppl.models.lmpromp import lmpromp_model
 
     dataset = "synthetic:latent?L=6&D=2&J=3&V=2&T=15&seed=0"
     hyper = lp.preset("proper", latent_dim=2)
     result = lp.fit(dataset, model="lmpromp", engine="cavi", hyper=hyper, num_basis=3)
-    data = prepare(dataset, 3).model_data
+    data = prepare_dataset(dataset, 3).model_data
     draws = {k: np.asarray(v) for k, v in result.sampler(jax.random.key(0), 4000).items()}
     log_ratio = model_log_joint(lmpromp_model, (data, hyper), draws) - np.asarray(result.log_density(draws))
     se = log_ratio.std(ddof=1) / np.sqrt(log_ratio.size)

@@ -15,7 +15,7 @@ import pytest
 
 import lmpromp_ppl
 from lmpromp_ppl.basis import DEFAULT_NUM_BASIS, DEFAULT_WIDTH
-from lmpromp_ppl.data import Demonstrations, load_dataset, model_data, standardize
+from lmpromp_ppl.data import Demonstrations, load_dataset, model_data, standardise
 from lmpromp_ppl.errors import LmprompError
 from lmpromp_ppl.inference import cavi
 from lmpromp_ppl.inference.cavi import init_mixture_state
@@ -38,8 +38,8 @@ def test_acceptance_rule_needs_a_higher_bound():
 @pytest.fixture(scope="module")
 def clusters_state():
     """The data and hyperparameters of ``test_search_recovers_synthetic_clusters`` (shared compiled code)."""
-    demos, _ = standardize(load_dataset("synthetic:clusters"))
-    data = cavi.prepare_cavi_data(model_data(demos, 10))
+    demos, _ = standardise(load_dataset("synthetic:clusters"))
+    data = cavi.sufficient_statistics(model_data(demos, 10))
     hyper = Hyperparameters(latent_dim=2, num_components=6)
     return data, hyper, cm.hyper_arrays(hyper), init_mixture_state(data, hyper, jax.random.key(3))
 

@@ -17,12 +17,12 @@ from scipy import special, stats
 
 from lmpromp_ppl.data.core import Demonstrations, ModelData, model_data
 from lmpromp_ppl.errors import DataError, LmprompError
+from lmpromp_ppl.inference.classical import classical_promp
 from lmpromp_ppl.models import (
     PROPER,
     SIMULATION,
     THESIS,
     Hyperparameters,
-    classical_promp,
     get_model,
     lmpromp_model,
     mixture_model,

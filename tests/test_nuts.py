@@ -8,11 +8,11 @@ import pytest
 import jax
 import arviz_stats
 
-from lmpromp_ppl.data.core import model_data, standardize
+from lmpromp_ppl.data.core import model_data, standardise
 from lmpromp_ppl.data.synthetic import latent_manifold
 from lmpromp_ppl.errors import LmprompError
 from lmpromp_ppl.diagnostics.metrics import quantity_reliability
-from lmpromp_ppl.inference.nuts import run_nuts
+from lmpromp_ppl.inference.nuts import fit_nuts
 from lmpromp_ppl.quantities import invariant_quantities
 from lmpromp_ppl.models.hyper import preset
 
@@ -22,7 +22,7 @@ NUM_DRAWS = 300
 @pytest.fixture(scope="module")
 def data():
     demos = latent_manifold(L=4, D=2, J=3, V=2, T=10, seed=1)
-    return model_data(standardize(demos)[0], 3)
+    return model_data(standardise(demos)[0], 3)
 
 
 @pytest.fixture(scope="module")
@@ -71,7 +71,7 @@ def exact_posterior(data, hyper, theta):
 def conjugate_runs(data, hyper, theta):
     """NUTS on the full model and on the w-collapsed model, both with theta fixed."""
     return {
-        collapsed: run_nuts(
+        collapsed: fit_nuts(
             "lmpromp", data, hyper, jax.random.key(11), collapsed=collapsed, num_chains=2,
             num_warmup=NUM_DRAWS, num_samples=NUM_DRAWS, fixed=theta,
         )
@@ -138,7 +138,7 @@ def test_nuts_result_layout(conjugate_runs, data):
 def test_nuts_compiled_program_is_reused(conjugate_runs, data, hyper, theta):
     """Same configuration and key: the cached program runs again with identical draws."""
     first = conjugate_runs["w"]
-    again = run_nuts(
+    again = fit_nuts(
         "lmpromp", data, hyper, jax.random.key(11), collapsed="w", num_chains=2,
         num_warmup=NUM_DRAWS, num_samples=NUM_DRAWS, fixed=theta,
     )
@@ -157,7 +157,7 @@ def test_nuts_compiled_program_is_reused(conjugate_runs, data, hyper, theta):
 def test_nuts_runs_each_model(data, model_name, latent_dim, num_components, expected):
     """The ProMP baseline and the mixture (z summed out) run collapsed and return their sites."""
     hyper = preset("proper", latent_dim=latent_dim, num_components=num_components, learn_beta=False)
-    result = run_nuts(model_name, data, hyper, jax.random.key(2), num_chains=2, num_warmup=60, num_samples=40)
+    result = fit_nuts(model_name, data, hyper, jax.random.key(2), num_chains=2, num_warmup=60, num_samples=40)
     assert {k: v.shape[2:] for k, v in result.samples.items()} == expected
     assert all(v.shape[:2] == (2, 40) and np.all(np.isfinite(v)) for v in result.samples.values())
 
@@ -182,23 +182,23 @@ def test_identifiable_quantities_and_reliability():
 
 def test_nuts_rejects_bad_options(data, hyper):
     with pytest.raises(LmprompError, match="unknown model"):
-        run_nuts("lmpromps", data, hyper, jax.random.key(0))
+        fit_nuts("lmpromps", data, hyper, jax.random.key(0))
     with pytest.raises(LmprompError, match="collapsed"):
-        run_nuts("lmpromp", data, hyper, jax.random.key(0), collapsed="hw")
+        fit_nuts("lmpromp", data, hyper, jax.random.key(0), collapsed="hw")
     with pytest.raises(LmprompError, match="no control variables"):
-        run_nuts("promp", data, hyper, jax.random.key(0), collapsed="wh")
+        fit_nuts("promp", data, hyper, jax.random.key(0), collapsed="wh")
     with pytest.raises(LmprompError, match="unknown sites"):
-        run_nuts("lmpromp", data, hyper, jax.random.key(0), fixed={"beta": 1.0})
+        fit_nuts("lmpromp", data, hyper, jax.random.key(0), fixed={"beta": 1.0})
     with pytest.raises(LmprompError, match="shape"):
-        run_nuts("lmpromp", data, hyper, jax.random.key(0), fixed={"b": np.zeros(3)})
+        fit_nuts("lmpromp", data, hyper, jax.random.key(0), fixed={"b": np.zeros(3)})
     with pytest.raises(LmprompError, match="target_accept"):
-        run_nuts("lmpromp", data, hyper, jax.random.key(0), target_accept=1.0)
+        fit_nuts("lmpromp", data, hyper, jax.random.key(0), target_accept=1.0)
 
 
 def test_default_nuts_learns_the_noise(data):
     """The default preset of the sampling engines infers beta (docs/defaults.md)."""
     hyper = preset("proper", latent_dim=1)
     assert hyper.learn_beta
-    result = run_nuts("lmpromp", data, hyper, jax.random.key(3), num_chains=1, num_warmup=60, num_samples=40)
+    result = fit_nuts("lmpromp", data, hyper, jax.random.key(3), num_chains=1, num_warmup=60, num_samples=40)
     beta = np.asarray(result.samples["beta"])
     assert beta.shape == (1, 40) and np.all(beta > 0)

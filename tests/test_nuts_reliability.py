@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 import jax
 
-from lmpromp_ppl.data import load_dataset, model_data, standardize
+from lmpromp_ppl.data import load_dataset, model_data, standardise
 from lmpromp_ppl.diagnostics.metrics import quantity_reliability
-from lmpromp_ppl.inference.nuts import run_nuts
+from lmpromp_ppl.inference.nuts import fit_nuts
 from lmpromp_ppl.quantities import invariant_quantities
 from lmpromp_ppl.models.hyper import preset
 
@@ -23,9 +23,9 @@ from lmpromp_ppl.models.hyper import preset
 @pytest.mark.slow
 def test_nuts_is_reliable_on_twenty_demonstrations():
     demos = load_dataset("synthetic:latent?L=20&D=2&J=10&V=3&seed=0")
-    data = model_data(standardize(demos)[0], 10)
+    data = model_data(standardise(demos)[0], 10)
     hyper = preset("proper", latent_dim=3)
-    result = run_nuts("lmpromp", data, hyper, jax.random.key(0), num_chains=2, num_warmup=500, num_samples=500)
+    result = fit_nuts("lmpromp", data, hyper, jax.random.key(0), num_chains=2, num_warmup=500, num_samples=500)
     assert result.options["collapsed"] == "wh" and result.options["noncentered"] == ["M"]
     assert int(np.sum(result.sample_stats["diverging"])) == 0
     assert result.samples["w"].shape == (2, 500, 20, 20)

@@ -23,7 +23,7 @@ from lmpromp_ppl.predict import (
     sample_trajectories,
     score_heldout,
     trajectory_distribution,
-    unstandardize,
+    unstandardise,
     unstandardize_samples,
     via_point,
 )
@@ -568,7 +568,7 @@ def test_unstandardize_maps_back_to_original_units():
     scaling = Scaling(np.array([1.0, -2.0]), np.array([2.0, 4.0]))
     weights = prior("lmpromp", lmpromp_params(rng)).weights
     traj = trajectory_distribution(weights, QUERY, **BASIS)
-    back = unstandardize(traj, scaling)
+    back = unstandardise(traj, scaling)
     np.testing.assert_allclose(np.asarray(back.mean), scaling.invert(np.asarray(traj.mean)), atol=1e-12)
     np.testing.assert_allclose(np.asarray(back.sd), scaling.invert_sd(np.asarray(traj.sd)), atol=1e-12)
     samples = sample_trajectories(jax.random.key(2), weights, QUERY, 3, **BASIS)

@@ -6,7 +6,7 @@ import jax
 import jax.numpy as jnp
 from numpyro.infer import Trace_ELBO
 
-from lmpromp_ppl.data.core import model_data, standardize
+from lmpromp_ppl.data.core import model_data, standardise
 from lmpromp_ppl.data.synthetic import latent_manifold
 from lmpromp_ppl.errors import ConvergenceWarning, LmprompError
 from lmpromp_ppl.inference import cavi
@@ -15,7 +15,7 @@ from lmpromp_ppl.inference.svi import (
     cavi_state_from_meanfield,
     make_guide,
     meanfield_params_from_cavi,
-    run_svi,
+    fit_svi,
 )
 from lmpromp_ppl.models.hyper import preset
 
@@ -23,7 +23,7 @@ from lmpromp_ppl.models.hyper import preset
 @pytest.fixture(scope="module")
 def data():
     demos = latent_manifold(L=4, D=2, J=3, V=2, T=10, seed=1)
-    return model_data(standardize(demos)[0], 3)
+    return model_data(standardise(demos)[0], 3)
 
 
 @pytest.fixture(scope="module")
@@ -35,7 +35,7 @@ def hyper():
 def cavi_run(data, hyper):
     """CAVI from the thesis initialisation: a mid-way state and the converged one."""
     # the general data path: SVI's weight covariances are full matrices
-    cdata = cavi.prepare_cavi_data(data, shared_psi=False)
+    cdata = cavi.sufficient_statistics(data, shared_psi=False)
     arrays = cavi.hyper_arrays(hyper)
     start = init_state(cdata, hyper)
     midway = cavi.run(start, cdata, arrays, 0.0, 3).state
@@ -80,7 +80,7 @@ MEANFIELD = dict(guide="meanfield", num_particles=4, window=500)  # one compiled
 def meanfield_fit(data, hyper, cavi_run):
     """svi_meanfield from CAVI's starting point, default stopping rule (step size halved on 5 plateaus)."""
     start = cavi_run[2]
-    return run_svi("lmpromp", data, hyper, jax.random.key(1), num_steps=20000, learning_rate=0.03,
+    return fit_svi("lmpromp", data, hyper, jax.random.key(1), num_steps=20000, learning_rate=0.03,
                    init_params=meanfield_params_from_cavi(start), **MEANFIELD)
 
 
@@ -114,7 +114,7 @@ def test_meanfield_draws_have_contract_sites(meanfield_fit, data):
 def test_stopping_rule_warns_at_the_step_limit(data, hyper, cavi_run, meanfield_fit):
     """stop_tol=0 cannot fire: the run takes all steps and warns (same compiled chunk as above)."""
     with pytest.warns(ConvergenceWarning, match="step limit"):
-        fit = run_svi("lmpromp", data, hyper, jax.random.key(3), num_steps=1000, learning_rate=0.01,
+        fit = fit_svi("lmpromp", data, hyper, jax.random.key(3), num_steps=1000, learning_rate=0.01,
                       stop_tol=0.0, init_params=meanfield_params_from_cavi(cavi_run[2]), **MEANFIELD)
     assert not fit.converged and fit.num_steps_run == 1000
     assert fit.options["final_learning_rate"] == 0.01  # no plateau reductions without the rule
@@ -125,7 +125,7 @@ def test_stopping_rule_warns_at_the_step_limit(data, hyper, cavi_run, meanfield_
 def test_autonormal_returns_contract_draws(data, hyper):
     """On the w-collapsed model; w comes from p(w | theta, y) for each draw from q.
     (The low-rank guide's draws are checked in the next test.)"""
-    fit = run_svi("lmpromp", data, hyper, jax.random.key(4), guide="autonormal", num_steps=6000,
+    fit = fit_svi("lmpromp", data, hyper, jax.random.key(4), guide="autonormal", num_steps=6000,
                   learning_rate=0.02, window=300, stop_tol=STOP_TOL)
     assert fit.converged
     draws = fit.sample(jax.random.key(5), 9)
@@ -150,7 +150,7 @@ def test_lowrank_recovers_exact_gaussian_posterior(data, hyper):
              "lam": np.array([1.0, 2.0])}
     num_demos = data.psi.shape[0]
     with pytest.warns(ConvergenceWarning):  # stop_tol=0: run all steps
-        fit = run_svi("lmpromp", data, hyper, jax.random.key(6), guide="lowrank", rank=2 * num_demos,
+        fit = fit_svi("lmpromp", data, hyper, jax.random.key(6), guide="lowrank", rank=2 * num_demos,
                       num_steps=4000, learning_rate=0.01, learning_rate_decay=0.999, num_particles=4,
                       window=500, stop_tol=0.0, fixed=theta)
     draws = fit.sample(jax.random.key(7), 4000)
@@ -173,12 +173,12 @@ def test_lowrank_recovers_exact_gaussian_posterior(data, hyper):
 
 def test_svi_rejects_bad_options(data, hyper):
     with pytest.raises(LmprompError, match="unknown guide"):
-        run_svi("lmpromp", data, hyper, jax.random.key(0), guide="fullrank")
+        fit_svi("lmpromp", data, hyper, jax.random.key(0), guide="fullrank")
     with pytest.raises(LmprompError, match="single-type"):
-        run_svi("mixture", data, hyper.replace(num_components=2), jax.random.key(0), guide="meanfield")
+        fit_svi("mixture", data, hyper.replace(num_components=2), jax.random.key(0), guide="meanfield")
     with pytest.raises(LmprompError, match="learning_rate"):
-        run_svi("lmpromp", data, hyper, jax.random.key(0), learning_rate=-1.0)
+        fit_svi("lmpromp", data, hyper, jax.random.key(0), learning_rate=-1.0)
     with pytest.raises(LmprompError, match="window"):
-        run_svi("lmpromp", data, hyper, jax.random.key(0), window=1)
+        fit_svi("lmpromp", data, hyper, jax.random.key(0), window=1)
     with pytest.raises(LmprompError, match="plateau_factor"):
-        run_svi("lmpromp", data, hyper, jax.random.key(0), plateau_factor=1.0)
+        fit_svi("lmpromp", data, hyper, jax.random.key(0), plateau_factor=1.0)

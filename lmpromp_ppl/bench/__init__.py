@@ -21,14 +21,14 @@ engine and writes one JSON document (layout in ``benchmarks/README.md``):
   Monte Carlo estimate, ``-loss`` averaged over many particles, which bounds
   the same evidence :math:`\log p(\mathbf y)` and may therefore exceed the
   CAVI optimum (a negative gap);
-* **NUTS** (:func:`lmpromp_ppl.inference.nuts.run_nuts`, its reliable default
+* **NUTS** (:func:`lmpromp_ppl.inference.nuts.fit_nuts`, its reliable default
   parametrisation: collapsed over ``w``, non-centred ``M``): wall time, the
   smallest bulk ESS over the identifiable quantities (``b``, ``alpha``, sorted
   ``lam`` and the eigenvalues of :math:`MM^T`) and the time per effective draw;
 * **batch fitting**: CAVI vectorised over many datasets with ``jax.vmap``
   (:func:`lmpromp_ppl.inference.cavi.fit_cavi_batched`, initialisation included);
 * **ProMP baseline**: the classical ProMP estimate
-  (:func:`lmpromp_ppl.models.promp.classical_promp`) against
+  (:func:`lmpromp_ppl.inference.classical.classical_promp`) against
   ``movement_primitives``' ``ProMP.imitate`` on LASA (optional ``bench`` extra);
 * **goals** (the issue's targets) with the measured figure and whether each is met.
 

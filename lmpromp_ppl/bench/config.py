@@ -52,7 +52,7 @@ class SviSettings:
 
     Attributes
     ----------
-    learning_rate : Adam step size (``run_svi``'s default)
+    learning_rate : Adam step size (``fit_svi``'s default)
     check_every : steps between two ELBO evaluations (the resolution of ``steps``)
     max_steps : step budget
     budget_s : optimisation-time budget in seconds (ELBO evaluations not counted)
@@ -70,7 +70,7 @@ class SviSettings:
 
 @dataclass(frozen=True)
 class NutsSettings:
-    """Chains, warm-up and draws of the NUTS rows (``run_nuts``'s defaults)."""
+    """Chains, warm-up and draws of the NUTS rows (``fit_nuts``'s defaults)."""
 
     num_chains: int = 2
     num_warmup: int = 500

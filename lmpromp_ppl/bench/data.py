@@ -1,14 +1,19 @@
-"""The benchmark's demonstrations (synthetic latent-manifold data, thesis eq. 4.1) and their CAVI statistics."""
+"""The benchmark's demonstrations (synthetic latent-manifold data, thesis eq. 4.1) and their CAVI statistics.
+
+:func:`shared_cavi_data` is the one place besides :func:`lmpromp_ppl.data.prepare_dataset`
+that turns demonstrations into engine inputs: for rows of a thousand demonstrations it
+builds CAVI's statistics from one shared design matrix without the padded
+(L, S, d) arrays, which would not fit in memory.
+"""
 
 from __future__ import annotations
-
 
 import jax.numpy as jnp
 import numpy as np
 
 from lmpromp_ppl.basis import DEFAULT_WIDTH, design_matrix
 from lmpromp_ppl.bench.config import RowSpec
-from lmpromp_ppl.data.core import Demonstrations, standardize
+from lmpromp_ppl.data.core import Demonstrations, standardise
 from lmpromp_ppl.data.synthetic import latent_manifold
 from lmpromp_ppl.errors import DataError
 from lmpromp_ppl.inference import cavi
@@ -36,13 +41,13 @@ def row_demonstrations(row: RowSpec) -> Demonstrations:
             positions=tuple(y for p in parts for y in p.positions),
             name=f"synthetic:latent mixture of {row.K} (seeds {row.seed}..{row.seed + row.K - 1})",
         )
-    return standardize(demos)[0]
+    return standardise(demos)[0]
 
 
 def shared_cavi_data(demos: Demonstrations, num_basis: int, width: float = DEFAULT_WIDTH) -> cavi.CaviData:
     """CAVI statistics of demonstrations that share one time grid, without padded arrays.
 
-    Equal to ``cavi.prepare_cavi_data(model_data(demos, num_basis, width))`` on
+    Equal to ``cavi.sufficient_statistics(model_data(demos, num_basis, width))`` on
     the shared-design fast path, but it never builds the (L, S, d) design
     array (2.8 GB for L = 1000, S = 840, d = 420): :math:`\\Psi^T y_i` is one
     (L, S) x (S, d) product.

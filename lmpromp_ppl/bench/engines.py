@@ -143,7 +143,7 @@ def bench_svi(
 ) -> dict:
     """Steps and optimisation time of SVI until the ELBO gap to CAVI falls below the target.
 
-    The model and guide are those of :func:`lmpromp_ppl.inference.svi.run_svi`
+    The model and guide are those of :func:`lmpromp_ppl.inference.svi.fit_svi`
     (``make_guide``; the meanfield guide starts at ``meanfield_init``, the
     autonormal guide at numpyro's default), optimised by Adam with single-particle
     gradients in compiled chunks of ``check_every`` steps; after each chunk the
@@ -167,7 +167,7 @@ def bench_svi(
     if guide_kind == "meanfield":
         init = {k: jnp.asarray(v) for k, v in svi_engine.meanfield_init(data, hyper).items()}
         state = optimiser.init(key_init, data, fixed, init_params=init)
-        full = cavi.prepare_cavi_data(data, shared_psi=False)
+        full = cavi.sufficient_statistics(data, shared_psi=False)
         hyper_arr = cavi.hyper_arrays(hyper)
 
         def elbo_of(params, _key):
@@ -229,11 +229,11 @@ def bench_svi(
 def bench_nuts(md: ModelData, hyper: Hyperparameters, key: Array, settings: NutsSettings) -> dict:
     """Wall time and time per effective draw of NUTS (smallest bulk ESS over the identifiable quantities)."""
     from lmpromp_ppl.diagnostics.metrics import quantity_reliability
-    from lmpromp_ppl.inference import nuts
+    from lmpromp_ppl.inference.registry import run_engine
     from lmpromp_ppl.quantities import invariant_quantities
 
-    result = nuts.run_nuts(
-        "lmpromp", md, hyper, key, num_chains=settings.num_chains,
+    result = run_engine(
+        "nuts", "lmpromp", md, hyper, key, num_chains=settings.num_chains,
         num_warmup=settings.num_warmup, num_samples=settings.num_samples,
     )
     quality = quantity_reliability(invariant_quantities(result.samples))
@@ -296,7 +296,7 @@ def bench_promp_baseline(dataset: str, num_basis: int) -> dict:
     data's time grid, relative to the data range (max - min over all DoF).
     """
     from lmpromp_ppl.data import load_dataset
-    from lmpromp_ppl.models.promp import classical_promp
+    from lmpromp_ppl.inference.classical import classical_promp
 
     demos = load_dataset(dataset)
     phases = demos.phases()

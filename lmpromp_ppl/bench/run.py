@@ -16,7 +16,7 @@ from lmpromp_ppl.bench.data import row_demonstrations, shared_cavi_data
 from lmpromp_ppl.bench.engines import bench_batch, bench_cavi, bench_nuts, bench_promp_baseline, bench_svi
 from lmpromp_ppl.bench.machine import machine_info, matmul_rate
 from lmpromp_ppl.bench.report import evaluate_goals
-from lmpromp_ppl.data.core import model_data
+from lmpromp_ppl.data.prepared import prepare_dataset
 from lmpromp_ppl.errors import ConvergenceWarning, LmprompError
 from lmpromp_ppl.results import to_json_value
 
@@ -40,7 +40,8 @@ def _bench_row(row: RowSpec, config: BenchConfig, peak_rate: float) -> dict:
         warnings.simplefilter("ignore", ConvergenceWarning)
         out["cavi"], _ = bench_cavi(row, data, config, peak_rate)
     log(config, f"{row.name}: cavi {out['cavi']['fit_s'] * 1e3:.2f} ms, {out['cavi']['iterations']} iterations")
-    md = model_data(demos, row.J) if row.engines else None
+    # the engines other than CAVI read padded model inputs from the one data path (already standardised)
+    md = prepare_dataset(demos, row.J, standardise=False).model_data if row.engines else None
     key = jax.random.key(config.seed)
     for engine in ("svi_meanfield", "svi_autonormal"):
         if engine not in row.engines:

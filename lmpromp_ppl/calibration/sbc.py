@@ -245,8 +245,8 @@ def fit_draws(
         ``svi_lowrank``); CAVI runs batched in :func:`sbc_task`
     problem, data : the problem and one simulated dataset
     key : PRNG key of the fit and of the draws
-    options : engine options passed to :func:`~lmpromp_ppl.inference.nuts.run_nuts`
-        or :func:`~lmpromp_ppl.inference.svi.run_svi`
+    options : engine options passed to :func:`~lmpromp_ppl.inference.nuts.fit_nuts`
+        or :func:`~lmpromp_ppl.inference.svi.fit_svi`
 
     Returns
     -------
@@ -260,19 +260,15 @@ def fit_draws(
     fit_key, draw_key = jax.random.split(key)
     start = time.perf_counter()
     if engine == "nuts":
-        from lmpromp_ppl.inference.nuts import run_nuts
-
         options = {"num_chains": 2, "num_warmup": 300, "num_samples": 300, **options}
-        result = run_nuts(problem.model, data, hyper, fit_key, **options)
+        result = registry.run_engine(engine, problem.model, data, hyper, fit_key, **options)
         draws = _thin(result.samples, problem.num_draws)
         info = {"divergences": int(np.sum(result.sample_stats["diverging"])), "converged": True}
-    elif engine.startswith("svi_"):
-        from lmpromp_ppl.inference.svi import run_svi
-
+    elif engine in registry.SVI_ENGINES:
         options = {"num_steps": 10000, "learning_rate": 0.01, **options}
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", ConvergenceWarning)
-            result = run_svi(problem.model, data, hyper, fit_key, guide=engine[len("svi_"):], **options)
+            result = registry.run_engine(engine, problem.model, data, hyper, fit_key, **options)
         draws = result.sample(draw_key, problem.num_draws)
         info = {"converged": bool(result.converged), "steps": int(result.num_steps_run),
                 "warnings": [str(w.message) for w in caught if not issubclass(w.category, ConvergenceWarning)]}

@@ -21,15 +21,15 @@ import typer
 from lmpromp_ppl.errors import ConvergenceWarning
 from lmpromp_ppl.outputs import (
     make_dirs,
-    prepare_out_dir,
-    prepare_out_file,
+    claim_out_dir,
+    claim_out_file,
     remove_created_dirs,
     start_recording,
     stop_recording,
 )
 
 __all__ = [
-    "SEED_MAX", "SEED_HELP", "positive", "open_fraction", "basis_size", "prepare_out_dir", "prepare_out_file",
+    "SEED_MAX", "SEED_HELP", "positive", "open_fraction", "basis_size", "claim_out_dir", "claim_out_file",
     "make_dirs", "remove_created_dirs", "start_recording", "stop_recording", "caught_convergence_warnings",
 ]
 

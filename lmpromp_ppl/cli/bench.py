@@ -8,7 +8,7 @@ from pathlib import Path
 import typer
 
 from lmpromp_ppl.cli import app
-from lmpromp_ppl.cli._common import SEED_HELP, SEED_MAX, positive, prepare_out_file
+from lmpromp_ppl.cli._common import SEED_HELP, SEED_MAX, positive, claim_out_file
 
 __all__ = ["bench_command"]
 
@@ -34,7 +34,7 @@ def bench_command(
 
     if device not in ("cpu", "gpu"):
         raise LmprompError(f"--device must be cpu or gpu, got {device!r}")
-    target = prepare_out_file(out, force)
+    target = claim_out_file(out, force)
     config = BenchConfig(
         rows=(DEFAULT_ROW,) if quick else (DEFAULT_ROW,) + SCALING_ROWS,
         svi=SviSettings(budget_s=svi_budget, max_steps=svi_steps),

@@ -21,7 +21,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from lmpromp_ppl.cli import app
-from lmpromp_ppl.cli._common import SEED_MAX, prepare_out_file
+from lmpromp_ppl.cli._common import SEED_MAX, claim_out_file
 from lmpromp_ppl.data.core import Demonstrations
 from lmpromp_ppl.data.registry import list_datasets, load_dataset
 from lmpromp_ppl.errors import LmprompError
@@ -153,7 +153,7 @@ def show_command(
             f"cannot write a figure to {out}: unknown image type {suffix or '(none)'!r}; "
             f"use one of {', '.join(sorted(supported))}"
         )
-    out = prepare_out_file(out, force)
+    out = claim_out_file(out, force)
     demos = load_dataset(dataset, seed=seed)
     fig = plot_demonstrations(demos, use_phase=phase, plane=plane and demos.num_dofs == 2)
     fig.savefig(out, dpi=120)

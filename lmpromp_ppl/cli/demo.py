@@ -12,7 +12,7 @@ from pathlib import Path
 import typer
 
 from lmpromp_ppl.cli import app
-from lmpromp_ppl.cli._common import SEED_HELP, SEED_MAX, prepare_out_dir
+from lmpromp_ppl.cli._common import SEED_HELP, SEED_MAX, claim_out_dir
 
 __all__ = ["DEMO_DATASET", "demo_command"]
 
@@ -34,7 +34,7 @@ def demo_command(
     from lmpromp_ppl.data import load_dataset
     from lmpromp_ppl.reports import compare
 
-    out_dir = prepare_out_dir(out, force)
+    out_dir = claim_out_dir(out, force)
     demos = load_dataset(DEMO_DATASET)
     plot_demonstrations(demos).savefig(out_dir / "demonstrations.png", dpi=110)
     metrics = compare(DEMO_DATASET, "lmpromp", engines, out_dir=out_dir / "compare", latent_dim=latent_dim,

@@ -10,7 +10,7 @@ import typer
 from lmpromp_ppl.basis import DEFAULT_NUM_BASIS, DEFAULT_WIDTH
 from lmpromp_ppl.cli import app
 from lmpromp_ppl.cli._common import (
-    SEED_HELP, SEED_MAX, basis_size, caught_convergence_warnings, positive, prepare_out_dir,
+    SEED_HELP, SEED_MAX, basis_size, caught_convergence_warnings, positive, claim_out_dir,
 )
 
 __all__ = ["convergence_note", "fit_command", "hyper_from_options"]
@@ -108,7 +108,7 @@ def fit_command(
         "num_steps": steps, "learning_rate": learning_rate,
     }
     options = {k: v for k, v in options.items() if v is not None}
-    out_dir = prepare_out_dir(out, force)
+    out_dir = claim_out_dir(out, force)
     with caught_convergence_warnings() as messages:
         result = fit(dataset, model=model, engine=engine, hyper=hyper, num_basis=num_basis, width=width, seed=seed,
                      progress=not quiet, **options)

@@ -9,7 +9,7 @@ import numpy as np
 import typer
 
 from lmpromp_ppl.cli import app
-from lmpromp_ppl.cli._common import SEED_MAX, positive, prepare_out_dir
+from lmpromp_ppl.cli._common import SEED_MAX, positive, claim_out_dir
 from lmpromp_ppl.errors import DataError, LmprompError
 
 __all__ = ["predict_command", "read_observation"]
@@ -92,7 +92,7 @@ def predict_command(
         raise DataError("observation phases must lie in [0, 1]; pass --duration to map times to phases")
     pred = predict_from_fit(result, phase, y, noise_sd=noise_sd, bayesian=bayesian, exact=exact,
                             num_samples=samples, key=jax.random.key(seed))
-    out_dir = prepare_out_dir(out, force)
+    out_dir = claim_out_dir(out, force)
     np.savez(out_dir / "prediction.npz", phase=pred.phase, mean=pred.mean, sd=pred.sd, sd_obs=pred.sd_obs,
              samples=pred.samples)
     fig = Figure(figsize=(4.5 * result.num_dofs, 3.2), layout="constrained")

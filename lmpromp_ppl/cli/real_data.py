@@ -9,7 +9,7 @@ from typing import Optional
 import typer
 
 from lmpromp_ppl.cli import app
-from lmpromp_ppl.cli._common import prepare_out_dir
+from lmpromp_ppl.cli._common import claim_out_dir
 
 __all__ = ["real_data_command"]
 
@@ -65,7 +65,7 @@ def real_data_command(
             previous = json.loads(path.read_text())
         except (OSError, ValueError) as exc:
             raise LmprompError(f"cannot read {path}: {exc}") from None
-    target = prepare_out_dir(out, force)
+    target = claim_out_dir(out, force)
     echo = (lambda msg: None) if quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
     rows = []
     for engine in engine_list:

@@ -7,7 +7,7 @@ from pathlib import Path
 import typer
 
 from lmpromp_ppl.cli import app
-from lmpromp_ppl.cli._common import SEED_HELP, SEED_MAX, prepare_out_dir
+from lmpromp_ppl.cli._common import SEED_HELP, SEED_MAX, claim_out_dir
 
 __all__ = ["reproduce_command"]
 
@@ -37,7 +37,7 @@ def reproduce_command(
         raise LmprompError(f"unknown experiment {name!r}; choose from {', '.join(EXPERIMENTS)} or all")
     if preset not in SETTINGS:
         raise LmprompError(f"unknown preset {preset!r}; choose from {', '.join(SETTINGS)}")
-    target = prepare_out_dir(out, force)
+    target = claim_out_dir(out, force)
     context = Context(out=target, quick=quick, seed=seed, progress=not quiet, settings=SETTINGS[preset])
     run_many(names, context, echo=None if quiet else typer.echo)
     if not quiet:

@@ -1,6 +1,6 @@
 """Demonstration data: the :class:`Demonstrations` type, loaders and files."""
 
-from lmpromp_ppl.data.core import Demonstrations, ModelData, Scaling, model_data, standardize
+from lmpromp_ppl.data.core import Demonstrations, ModelData, Scaling, model_data, standardise
 from lmpromp_ppl.data.files import load_csv, load_npz, save_csv, save_npz
 from lmpromp_ppl.data.lasa import lasa_shapes, load_lasa
 from lmpromp_ppl.data.prepared import PreparedDataset, load_demonstrations, prepare_dataset
@@ -18,7 +18,7 @@ __all__ = [
     "ModelData",
     "Scaling",
     "model_data",
-    "standardize",
+    "standardise",
     "PreparedDataset",
     "prepare_dataset",
     "load_demonstrations",

@@ -3,7 +3,7 @@
 Demonstrations hold per-demonstration times ``(T_i,)`` and positions
 ``(T_i, D)``; lengths may differ.  :meth:`Demonstrations.phases` maps each
 demonstration's time to [0, 1] by its own start and duration (docs/cli.md).
-:func:`standardize` scales each DoF to zero mean and unit variance on the
+:func:`standardise` scales each DoF to zero mean and unit variance on the
 training set; the :class:`Scaling` is stored with every fit.
 :func:`model_data` turns demonstrations into the padded arrays that every
 engine consumes (:class:`ModelData`).
@@ -21,7 +21,7 @@ from jax import Array
 from lmpromp_ppl.basis import DEFAULT_WIDTH, design_matrix
 from lmpromp_ppl.errors import DataError
 
-__all__ = ["Demonstrations", "Scaling", "ModelData", "standardize", "model_data"]
+__all__ = ["Demonstrations", "Scaling", "ModelData", "standardise", "model_data"]
 
 
 def _as_float(name: str, a, ndim: int) -> np.ndarray:
@@ -181,7 +181,7 @@ class Scaling:
         return cls(np.zeros(num_dofs), np.ones(num_dofs))
 
 
-def standardize(
+def standardise(
     demos: Demonstrations, scaling: Scaling | None = None
 ) -> tuple[Demonstrations, Scaling]:
     """Scale each DoF to zero mean and unit variance over all samples.

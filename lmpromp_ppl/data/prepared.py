@@ -14,7 +14,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from lmpromp_ppl.basis import DEFAULT_WIDTH
-from lmpromp_ppl.data.core import Demonstrations, ModelData, Scaling, model_data, standardize
+from lmpromp_ppl.data.core import Demonstrations, ModelData, Scaling, model_data
+from lmpromp_ppl.data.core import standardise as standardise_demonstrations
 from lmpromp_ppl.errors import LmprompError
 
 __all__ = ["PreparedDataset", "prepare_dataset", "load_demonstrations"]
@@ -91,9 +92,9 @@ def prepare_dataset(
     spec, raw = load_demonstrations(data)
     _check_basis(num_basis, width)
     if scaling is not None:
-        scaled, scaling = standardize(raw, scaling)
+        scaled, scaling = standardise_demonstrations(raw, scaling)
     elif standardise:
-        scaled, scaling = standardize(raw)
+        scaled, scaling = standardise_demonstrations(raw)
     else:
         scaled, scaling = raw, Scaling.identity(raw.num_dofs)
     return PreparedDataset(spec, raw, scaled, scaling, model_data(scaled, num_basis, width), int(num_basis),

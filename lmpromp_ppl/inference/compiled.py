@@ -1,10 +1,12 @@
 """The one ahead-of-time compile cache of the engines.
 
-``jax.jit`` caches traces too, but a user waits for compilation, so the CAVI
-loop, its batched and split-and-merge variants compile explicitly
-(``lower(...).compile()``) to report compilation time apart from fitting time.
-:func:`compiled` keys the executable by the function, the argument tree, the
-shapes and dtypes of its leaves and the static arguments.
+``jax.jit`` caches traces too, but a user waits for compilation, so the
+engines compile explicitly (``lower(...).compile()``) to report compilation
+time apart from fitting time.  :func:`compiled` keys an executable by the
+function, the argument tree, the shapes and dtypes of its leaves and the static
+arguments (the CAVI loop, its batched and split-and-merge variants);
+:func:`lookup` and :func:`remember` hold the programs NUTS and SVI build per
+configuration, in the same cache.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["compiled", "clear"]
+__all__ = ["compiled", "lookup", "remember", "clear"]
 
 _CACHE: dict = {}
 
@@ -40,6 +42,16 @@ def compiled(function: Callable, args: tuple, **static: Any) -> tuple[Callable, 
     seconds = time.perf_counter() - start
     _CACHE[key] = executable
     return executable, seconds
+
+
+def lookup(key: tuple):
+    """A program an engine stored under ``key`` (None when absent): NUTS's sampler, SVI's chunk."""
+    return _CACHE.get(("program", key))
+
+
+def remember(key: tuple, program) -> None:
+    """Store an engine's compiled program (with whatever it needs to run) under ``key``."""
+    _CACHE[("program", key)] = program
 
 
 def clear() -> None:

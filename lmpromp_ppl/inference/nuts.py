@@ -1,6 +1,6 @@
 r"""NUTS on the NumPyro declarations of :mod:`lmpromp_ppl.models` (the reference engine).
 
-:func:`run_nuts` runs the No-U-Turn sampler (numpyro's functional
+:func:`fit_nuts` runs the No-U-Turn sampler (numpyro's functional
 ``hmc(algo="NUTS")`` kernel: multinomial NUTS with dual-averaging step size
 and diagonal or dense mass-matrix adaptation) on the ProMP baseline, the
 LMProMP (thesis Sec. 4.1, eq. 4.1) or the LMProMP mixture with the
@@ -95,20 +95,21 @@ from numpyro.infer.util import ParamInfo, initialize_model
 from lmpromp_ppl._keys import raw_key
 from lmpromp_ppl.data.core import ModelData
 from lmpromp_ppl.errors import LmprompError
+from lmpromp_ppl.inference.compiled import lookup, remember
 from lmpromp_ppl.models.conditionals import draw_integrated_sites
 from lmpromp_ppl.models.hyper import Hyperparameters
 from lmpromp_ppl.models.registry import model_function, resolve_collapse
 
 __all__ = [
     "NutsResult",
-    "run_nuts",
+    "fit_nuts",
 ]
 
 _STAT_NAMES = ("diverging", "tree_depth", "step_size", "accept_prob", "energy", "num_steps")
 
 
 class NutsResult(NamedTuple):
-    """What :func:`run_nuts` returns.
+    """What :func:`fit_nuts` returns.
 
     Attributes
     ----------
@@ -171,9 +172,6 @@ class _Config(NamedTuple):
     max_tree_depth: int
     dense_mass: bool
     chain_method: str
-
-
-_PROGRAMS: dict[tuple, Callable] = {}
 
 
 def _build_program(config: _Config) -> Callable:
@@ -243,7 +241,7 @@ def _check_positive_int(name: str, value, minimum: int = 1) -> int:
     return int(value)
 
 
-def run_nuts(
+def fit_nuts(
     model_name: str,
     data: ModelData,
     hyper: Hyperparameters,
@@ -332,10 +330,10 @@ def run_nuts(
     cache_key = (config, jax.tree_util.tree_structure(args),
                  tuple((a.shape, a.dtype) for a in jax.tree_util.tree_leaves(args)))
     start = time.perf_counter()
-    compiled = _PROGRAMS.get(cache_key)
+    compiled = lookup(cache_key)
     if compiled is None:
         compiled = jax.jit(_build_program(config)).lower(*args).compile()
-        _PROGRAMS[cache_key] = compiled
+        remember(cache_key, compiled)
     compile_seconds = time.perf_counter() - start
     start = time.perf_counter()
     samples, stats = jax.block_until_ready(compiled(*args))

@@ -3,7 +3,8 @@
 The API (:func:`lmpromp_ppl.fit`), the CLI, ``compare``, calibration, the
 reproduction and the benchmarks read the engine lists and the valid
 (model, engine) pairs from here; :func:`check_fit` refuses a bad request with
-one clear :class:`~lmpromp_ppl.errors.LmprompError` before any work is done.
+one clear :class:`~lmpromp_ppl.errors.LmprompError` before any work is done,
+and :func:`run_engine` is the one dispatch from an engine's name to its run.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ __all__ = [
     "check_fit",
     "engines_for",
     "guide_of",
+    "run_engine",
 ]
 
 #: Every engine, in the order of docs/cli.md.
@@ -102,3 +104,25 @@ def check_fit(model: str, engine: str, options: dict) -> None:
 
         if options["search"] not in SEARCHES:
             raise LmprompError(f"unknown search {options['search']!r}; choose from {list(SEARCHES)}")
+
+
+def run_engine(engine: str, model: str, data, hyper, key, *, progress=False, **options):
+    """Run ``engine`` on ``model`` and prepared model inputs; the engine's own result.
+
+    ``cavi`` -> :class:`~lmpromp_ppl.inference.cavi.CaviFit` (:func:`lmpromp_ppl.inference.cavi.fit`),
+    ``nuts`` -> :class:`~lmpromp_ppl.inference.nuts.NutsResult`,
+    ``svi_<guide>`` -> :class:`~lmpromp_ppl.inference.svi.SviResult`.  The pair is
+    checked first (:func:`check_pair`); ``options`` go to the engine.
+    """
+    check_pair(model, engine)
+    if engine == "cavi":
+        from lmpromp_ppl.inference import cavi
+
+        return cavi.fit(data, hyper, key, mixture=model == "mixture", progress=progress, **options)
+    if engine == "nuts":
+        from lmpromp_ppl.inference.nuts import fit_nuts
+
+        return fit_nuts(model, data, hyper, key, progress=progress, **options)
+    from lmpromp_ppl.inference.svi import fit_svi
+
+    return fit_svi(model, data, hyper, key, guide=guide_of(engine), progress=progress, **options)

@@ -1,6 +1,6 @@
 r"""Stochastic variational inference on the NumPyro declarations of :mod:`lmpromp_ppl.models`.
 
-:func:`run_svi` maximises the ELBO :math:`\mathbb E_q[\log p(\mathbf y, Z) - \log q(Z)]`
+:func:`fit_svi` maximises the ELBO :math:`\mathbb E_q[\log p(\mathbf y, Z) - \log q(Z)]`
 (thesis eq. 3.5) by Adam on reparametrised Monte Carlo gradients
 (``numpyro.infer.Trace_ELBO``) with one of three guides (:func:`make_guide`):
 
@@ -92,6 +92,7 @@ from lmpromp_ppl._keys import raw_key
 from lmpromp_ppl._progress import line_reporter
 from lmpromp_ppl.data.core import ModelData
 from lmpromp_ppl.errors import ConvergenceWarning, LmprompError
+from lmpromp_ppl.inference.compiled import lookup, remember
 from lmpromp_ppl.inference.svi_guides import (
     GUIDES,
     cavi_state_from_meanfield,
@@ -102,7 +103,7 @@ from lmpromp_ppl.inference.svi_guides import (
 )
 from lmpromp_ppl.models.conditionals import draw_integrated_sites
 from lmpromp_ppl.models.hyper import Hyperparameters
-from lmpromp_ppl.models.lmpromp import prepare_data
+from lmpromp_ppl.models.lmpromp import masked_observations
 from lmpromp_ppl.models.registry import resolve_collapse
 
 __all__ = [
@@ -114,7 +115,7 @@ __all__ = [
     "meanfield_init",
     "meanfield_params_from_cavi",
     "cavi_state_from_meanfield",
-    "run_svi",
+    "fit_svi",
 ]
 
 class SviContext(NamedTuple):
@@ -130,7 +131,7 @@ class SviContext(NamedTuple):
 
 
 class SviResult(NamedTuple):
-    """What :func:`run_svi` returns.
+    """What :func:`fit_svi` returns.
 
     Attributes
     ----------
@@ -212,14 +213,11 @@ class SviResult(NamedTuple):
         return {k: np.asarray(v) for k, v in draws.items()}
 
 
-_PROGRAMS: dict[tuple, tuple] = {}
-
-
 def _adam(rate: float, decay: float, b1: float = 0.9, b2: float = 0.999, eps: float = 1e-8):
     r"""Adam (Kingma & Ba 2015) whose step size is part of the optimiser state.
 
     The step size at step ``i`` is ``r * decay ** i`` with ``r`` held in the
-    state ``(params, m, v, r)``, so that :func:`run_svi` can lower it between
+    state ``(params, m, v, r)``, so that :func:`fit_svi` can lower it between
     compiled chunks (on a plateau) without recompiling.  Returns numpyro's
     ``(init_fn, update_fn, get_params_fn)`` triple, wrapped by ``_NumPyroOptim``.
     """
@@ -251,7 +249,7 @@ def _eager_init(svi: SVI, key: Array, data: ModelData, fixed: dict, init: dict):
     return svi.init(key, data, fixed, init_params=init or None)
 
 
-def run_svi(
+def fit_svi(
     model_name: str,
     data: ModelData,
     hyper: Hyperparameters,
@@ -321,7 +319,7 @@ def run_svi(
         raise LmprompError(f"stop_tol must be non-negative, got {stop_tol!r}")
     collapse = resolve_collapse(model_name, collapsed)
     data = ModelData(*(jnp.asarray(a, dtype=jnp.float64) for a in data))
-    prepare_data(data)  # shape and value checks with their own messages
+    masked_observations(data)  # shape and value checks with their own messages
     fixed = {k: jnp.asarray(v, dtype=jnp.float64) for k, v in (fixed or {}).items()}
     model, guide_fn = make_guide(guide, model_name, data, hyper, collapsed=collapse, rank=rank,
                                  fixed_names=tuple(sorted(fixed)))
@@ -339,7 +337,7 @@ def run_svi(
                  jax.tree_util.tree_structure((data, fixed, init)),
                  tuple((jnp.shape(a), jnp.result_type(a)) for a in jax.tree_util.tree_leaves((data, fixed, init))))
     start = time.perf_counter()
-    cached = _PROGRAMS.get(cache_key)
+    cached = lookup(cache_key)
     if cached is None:
         svi = SVI(model, guide_fn, _NumPyroOptim(_adam, float(learning_rate), float(learning_rate_decay)),
                   Trace_ELBO(num_particles=int(num_particles)))
@@ -363,7 +361,8 @@ def run_svi(
             init_fn = partial(_eager_init, svi)
         state = init_fn(raw_key(key), data, fixed, init)
         chunk = jax.jit(run_chunk).lower(state, data, fixed).compile()
-        _PROGRAMS[cache_key] = cached = (svi, init_fn, chunk)
+        cached = (svi, init_fn, chunk)
+        remember(cache_key, cached)
     else:
         svi, init_fn, chunk = cached
         state = init_fn(raw_key(key), data, fixed, init)

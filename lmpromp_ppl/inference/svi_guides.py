@@ -19,7 +19,7 @@ from numpyro.infer.autoguide import AutoLowRankMultivariateNormal, AutoNormal
 from lmpromp_ppl.data.core import ModelData
 from lmpromp_ppl.errors import LmprompError
 from lmpromp_ppl.models.hyper import Hyperparameters
-from lmpromp_ppl.models.lmpromp import lmpromp_model, prepare_data
+from lmpromp_ppl.models.lmpromp import lmpromp_model, masked_observations
 from lmpromp_ppl.models.registry import model_function, resolve_collapse
 
 __all__ = [
@@ -92,7 +92,7 @@ def meanfield_init(data: ModelData, hyper: Hyperparameters) -> dict[str, np.ndar
     thesis's PCA initialisation); then one pass of the Sec. 4.1.1 formulas for the
     covariances and the Gamma factors given these means.
     """
-    prepared = prepare_data(data)
+    prepared = masked_observations(data)
     psi, y = np.asarray(prepared.psi), np.asarray(prepared.y)
     num_demos, _, num_weights = psi.shape
     num_latent = hyper.latent_dim
@@ -177,7 +177,7 @@ def cavi_state_from_meanfield(params: Mapping[str, Any]):
     With it, :func:`lmpromp_ppl.inference.cavi.elbo` evaluates the closed-form
     bound at SVI's parameters.  The weight covariances are full matrices
     (``FullCovariance``), so evaluate it on data prepared with
-    ``cavi.prepare_cavi_data(data, shared_psi=False)``.  A guide with
+    ``cavi.sufficient_statistics(data, shared_psi=False)``.  A guide with
     ``beta_shape``/``beta_rate`` gives a state with q(beta).
     """
     from lmpromp_ppl.inference.cavi import FullCovariance, lift_single_type

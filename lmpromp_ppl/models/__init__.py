@@ -11,7 +11,7 @@ from __future__ import annotations
 from lmpromp_ppl.models.hyper import PROPER, SIMULATION, THESIS, Hyperparameters, preset
 from lmpromp_ppl.models.lmpromp import lmpromp_model
 from lmpromp_ppl.models.mixture import mixture_model
-from lmpromp_ppl.models.promp import classical_promp, promp_model
+from lmpromp_ppl.models.promp import promp_model
 from lmpromp_ppl.models.collapsed import (
     lmpromp_collapsed_model,
     mixture_collapsed_model,
@@ -46,7 +46,6 @@ __all__ = [
     "promp_collapsed_model",
     "lmpromp_collapsed_model",
     "mixture_collapsed_model",
-    "classical_promp",
     "sample_w_given_theta",
     "sample_h_given_theta",
     "sample_prior",

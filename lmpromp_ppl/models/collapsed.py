@@ -28,7 +28,7 @@ dense :math:`S \times S` covariance:
   :math:`\Psi_i\mathbf L_\Sigma` (rank d),
 
 with ``cov_diag`` = :math:`\beta^{-1}`.  A masked entry has a zero row of
-:math:`\Psi_i` and ``y = 0`` (:func:`~lmpromp_ppl.models.lmpromp.prepare_data`),
+:math:`\Psi_i` and ``y = 0`` (:func:`~lmpromp_ppl.models.lmpromp.masked_observations`),
 so it is independent of the rest and contributes exactly
 :math:`\log \mathcal N(0 | 0, \beta^{-1})`; a ``numpyro.factor`` named
 ``y_missing`` removes that, so the density equals the one over observed entries
@@ -50,7 +50,7 @@ from jax import Array
 from lmpromp_ppl.data.core import ModelData
 from lmpromp_ppl.errors import LmprompError
 from lmpromp_ppl.models.hyper import Hyperparameters
-from lmpromp_ppl.models.lmpromp import PreparedData, global_priors, observation_precision, prepare_data
+from lmpromp_ppl.models.lmpromp import MaskedObservations, global_priors, observation_precision, masked_observations
 from lmpromp_ppl.models.mixture import component_priors
 from lmpromp_ppl.models.promp import promp_weight_prior
 
@@ -65,7 +65,7 @@ _LOG_2PI = math.log(2.0 * math.pi)
 
 # --------------------------------------------------------------------------- models
 def _observe_collapsed(
-    prepared: PreparedData, y_dist: dist.Distribution, beta, observed: bool
+    prepared: MaskedObservations, y_dist: dist.Distribution, beta, observed: bool
 ) -> None:
     """Site ``y`` (inside the ``demo`` plate) plus the ``y_missing`` correction."""
     numpyro.sample("y", y_dist, obs=prepared.y if observed else None)
@@ -96,7 +96,7 @@ def lmpromp_collapsed_model(
     Sites: ``b``, ``lam``, ``M``, ``alpha``, ``beta`` (when learned), ``h``
     (unless ``collapse_h``), ``y`` and the factor ``y_missing``.
     """
-    prepared = prepare_data(data)
+    prepared = masked_observations(data)
     num_demos, size, num_weights = prepared.psi.shape
     hyper.validate_for(num_weights)
     num_latent = hyper.latent_dim
@@ -138,7 +138,7 @@ def mixture_collapsed_model(
     Sites: ``pi``, ``b``, ``lam``, ``M``, ``alpha``, ``beta`` (when learned), ``h``
     (L, K, V) unless ``collapse_h``, ``y`` and the factor ``y_missing``.
     """
-    prepared = prepare_data(data)
+    prepared = masked_observations(data)
     num_demos, size, num_weights = prepared.psi.shape
     hyper.validate_for(num_weights)
     num_components, num_latent = hyper.num_components, hyper.latent_dim
@@ -182,7 +182,7 @@ def promp_collapsed_model(
     ``w_scale``, ``w_corr_chol``, ``Sigma_w``, ``beta`` (when learned), ``y``,
     ``y_missing``.
     """
-    prepared = prepare_data(data)
+    prepared = masked_observations(data)
     num_demos, size, num_weights = prepared.psi.shape
     if num_weights < 2:
         raise LmprompError(f"the ProMP baseline needs at least 2 weights, got d={num_weights}")

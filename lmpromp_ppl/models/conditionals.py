@@ -21,7 +21,7 @@ from jax.scipy.linalg import solve_triangular
 from lmpromp_ppl.data.core import ModelData
 from lmpromp_ppl.errors import LmprompError
 from lmpromp_ppl.models.hyper import Hyperparameters
-from lmpromp_ppl.models.lmpromp import PreparedData, prepare_data
+from lmpromp_ppl.models.lmpromp import MaskedObservations, masked_observations
 
 __all__ = ["gaussian_conditional", "sample_w_given_theta", "sample_h_given_theta", "draw_integrated_sites"]
 
@@ -182,7 +182,7 @@ def _params_for_draws(
     return sample_shape, flat
 
 
-def _data_statistics(prepared: PreparedData) -> tuple[Array, Array, Array, Array]:
+def _data_statistics(prepared: MaskedObservations) -> tuple[Array, Array, Array, Array]:
     """Per demonstration: Psi^T Psi (L, d, d), Psi^T y (L, d), y^T y (L,), count (L,)."""
     psi, y = prepared.psi, prepared.y
     return (
@@ -286,7 +286,7 @@ def sample_w_given_theta(
     -------
     w : (*sample_shape, L, d)
     """
-    prepared = prepare_data(data)
+    prepared = masked_observations(data)
     num_demos, _, num_weights = prepared.psi.shape
     model = _infer_model(params) if model is None else model
     sample_shape, flat = _params_for_draws(params, hyper, model, num_weights, num_demos)

@@ -42,10 +42,12 @@ from lmpromp_ppl.data.core import ModelData
 from lmpromp_ppl.errors import DataError
 from lmpromp_ppl.models.hyper import Hyperparameters
 
-__all__ = ["lmpromp_model", "PreparedData", "prepare_data", "observation_precision", "observe_y", "global_priors"]
+__all__ = [
+    "lmpromp_model", "MaskedObservations", "masked_observations", "observation_precision", "observe_y", "global_priors",
+]
 
 
-class PreparedData(NamedTuple):
+class MaskedObservations(NamedTuple):
     """Model inputs with masked entries neutralised.
 
     Attributes
@@ -66,7 +68,7 @@ def _is_concrete(x) -> bool:
     return not isinstance(x, jax.core.Tracer)
 
 
-def prepare_data(data: ModelData) -> PreparedData:
+def masked_observations(data: ModelData) -> MaskedObservations:
     """Check the shapes (and, for concrete arrays, the values) of ``data``.
 
     Masked entries (``mask == 0``) get ``y = 0`` and a zero design-matrix row,
@@ -100,7 +102,7 @@ def prepare_data(data: ModelData) -> PreparedData:
     psi = jnp.where(observed[..., None], psi, 0.0)
     y = jnp.where(observed, y, 0.0)
     num_missing = jnp.sum(~observed, axis=-1)
-    return PreparedData(psi, y, observed, num_missing)
+    return MaskedObservations(psi, y, observed, num_missing)
 
 
 def observation_precision(hyper: Hyperparameters) -> Array | float:
@@ -110,7 +112,7 @@ def observation_precision(hyper: Hyperparameters) -> Array | float:
     return hyper.beta
 
 
-def observe_y(prepared: PreparedData, w: Array, beta, observed: bool) -> Array:
+def observe_y(prepared: MaskedObservations, w: Array, beta, observed: bool) -> Array:
     r"""Site ``y``: :math:`\mathcal N(\Psi_i \mathbf w_i, \beta^{-1} \mathbf I)` over observed entries.
 
     Must be called inside the ``demo`` plate; ``w`` is (L, d).
@@ -129,7 +131,7 @@ def lmpromp_model(data: ModelData, hyper: Hyperparameters, observed: bool = True
     hyper : hyperparameters (precisions; Gamma shape/rate)
     observed : condition on ``data.y`` (True) or sample ``y`` (prior predictive)
     """
-    prepared = prepare_data(data)
+    prepared = masked_observations(data)
     num_demos, _, num_weights = prepared.psi.shape
     hyper.validate_for(num_weights)
     num_latent = hyper.latent_dim

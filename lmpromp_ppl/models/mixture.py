@@ -35,7 +35,7 @@ from jax import Array
 
 from lmpromp_ppl.data.core import ModelData
 from lmpromp_ppl.models.hyper import Hyperparameters
-from lmpromp_ppl.models.lmpromp import observation_precision, observe_y, prepare_data
+from lmpromp_ppl.models.lmpromp import observation_precision, observe_y, masked_observations
 
 __all__ = ["mixture_model", "component_priors"]
 
@@ -79,7 +79,7 @@ def mixture_model(
         component of each ``w_i`` (for checking a bound that has ``q(z)``)
     observed : condition on ``data.y`` (True) or sample ``y`` (prior predictive)
     """
-    prepared = prepare_data(data)
+    prepared = masked_observations(data)
     num_demos, _, num_weights = prepared.psi.shape
     hyper.validate_for(num_weights)
     num_components, num_latent = hyper.num_components, hyper.latent_dim

@@ -27,7 +27,7 @@ from scipy import stats
 from lmpromp_ppl.data.core import ModelData
 from lmpromp_ppl.errors import LmprompError
 from lmpromp_ppl.models.hyper import Hyperparameters
-from lmpromp_ppl.models.lmpromp import lmpromp_model, prepare_data
+from lmpromp_ppl.models.lmpromp import lmpromp_model, masked_observations
 from lmpromp_ppl.models.mixture import mixture_model
 from lmpromp_ppl.models.promp import promp_model
 
@@ -93,7 +93,7 @@ def sample_prior_predictive(
     check_simulable(model_name, hyper)
     if isinstance(num_samples, bool) or int(num_samples) != num_samples or num_samples < 1:
         raise LmprompError(f"num_samples must be a positive integer, got {num_samples!r}")
-    prepared = prepare_data(data)
+    prepared = masked_observations(data)
     model = _SIMULATION_MODELS[model_name]
     predictive = Predictive(model, num_samples=int(num_samples))
     draws = predictive(key, data, hyper, observed=False)

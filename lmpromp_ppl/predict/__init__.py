@@ -49,7 +49,7 @@ from lmpromp_ppl.predict.trajectories import (
     sample_trajectories,
     sample_weights,
     trajectory_distribution,
-    unstandardize,
+    unstandardise,
     unstandardize_samples,
 )
 
@@ -84,6 +84,6 @@ __all__ = [
     "sample_trajectories",
     "sample_weights",
     "trajectory_distribution",
-    "unstandardize",
+    "unstandardise",
     "unstandardize_samples",
 ]

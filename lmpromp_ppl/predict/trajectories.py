@@ -17,7 +17,7 @@ and the mixture's moments are :math:`\bar m = \sum_k z_k m_k`,
 :math:`\bar v = \sum_k z_k (v_k + (m_k - \bar m)^2)` (mean = average of
 means; variance = average of (variance + mean^2) - mean^2).
 
-Results are in the standardised space of the fit; :func:`unstandardize` and
+Results are in the standardised space of the fit; :func:`unstandardise` and
 :func:`unstandardize_samples` map them back with a :class:`Scaling`.
 """
 
@@ -41,7 +41,7 @@ __all__ = [
     "trajectory_distribution",
     "sample_weights",
     "sample_trajectories",
-    "unstandardize",
+    "unstandardise",
     "unstandardize_samples",
 ]
 
@@ -210,7 +210,7 @@ def sample_trajectories(
     return paths + jnp.sqrt(_noise_variance(beta)) * jax.random.normal(key_noise, paths.shape)
 
 
-def unstandardize(distribution: TrajectoryDistribution, scaling: Scaling) -> TrajectoryDistribution:
+def unstandardise(distribution: TrajectoryDistribution, scaling: Scaling) -> TrajectoryDistribution:
     """Map moments back to the original units: mean -> mean + scale * x, sd -> sd * scale."""
     shift = jnp.asarray(scaling.mean, dtype=jnp.float64)
     scale = jnp.asarray(scaling.scale, dtype=jnp.float64)

@@ -234,8 +234,9 @@ def compare(
     dict
         The content of ``metrics.json``.
     """
-    from lmpromp_ppl.api import MODELS, fit, prepare, resolve_num_basis, select_num_basis
-    from lmpromp_ppl.outputs import prepare_out_dir
+    from lmpromp_ppl.api import MODELS, fit, resolve_num_basis, select_num_basis
+    from lmpromp_ppl.data import prepare_dataset
+    from lmpromp_ppl.outputs import claim_out_dir
     from lmpromp_ppl.models.hyper import preset
     from lmpromp_ppl.reports.report import write_report
     from lmpromp_ppl.results import to_json_value
@@ -263,10 +264,10 @@ def compare(
         num_basis = prepared.num_basis
         say(f"J = {num_basis}")
     else:
-        prepared = prepare(dataset, num_basis)  # the one data path: every engine and diagnostic reads it
+        prepared = prepare_dataset(dataset, num_basis)  # the one data path: every engine and diagnostic reads it
     spec, raw, mdata = prepared.spec, prepared.raw, prepared.model_data
     hyper.validate_for(mdata.num_weights, mdata.num_demos)
-    out = prepare_out_dir(Path(out_dir), force)
+    out = claim_out_dir(Path(out_dir), force)
 
     results, engine_warnings = {}, {}
     for i, name in enumerate(names):

@@ -184,13 +184,14 @@ def _finite(params: dict) -> bool:
 
 def _cavi(data: ModelData, hyper: Hyperparameters, seed: int, restarts: int, mixture: bool) -> FitOutcome:
     from lmpromp_ppl.inference import cavi
+    from lmpromp_ppl.inference.registry import run_engine
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ConvergenceWarning)
         try:
-            result = cavi.fit(
-                data, hyper, jax.random.key(seed), mixture=mixture, tol=TOL, max_iter=MAX_ITER,
-                num_restarts=restarts, shared_psi=False,
+            result = run_engine(
+                "cavi", "mixture" if mixture else "lmpromp", data, hyper, jax.random.key(seed), tol=TOL,
+                max_iter=MAX_ITER, num_restarts=restarts, shared_psi=False,
             )
         except EngineDivergedError:
             return FitOutcome({}, False, False)
@@ -219,7 +220,7 @@ def fit_promp(data: ModelData) -> FitOutcome:
     The shrunk covariance is a stronger baseline than the thesis's sample
     covariance, which is singular when there are fewer demonstrations than weights.
     """
-    from lmpromp_ppl.models.promp import classical_promp
+    from lmpromp_ppl.inference.classical import classical_promp
 
     mu_w, sigma_w, _ = classical_promp(data, ridge=1e-6)
     params = {"mu_w": np.asarray(mu_w), "Sigma_w": np.asarray(sigma_w)}

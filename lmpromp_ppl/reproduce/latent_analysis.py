@@ -16,7 +16,7 @@ import numpy as np
 
 from lmpromp_ppl.data import load_dataset
 from lmpromp_ppl.data.core import Demonstrations
-from lmpromp_ppl.models.promp import classical_promp
+from lmpromp_ppl.inference.classical import classical_promp
 from lmpromp_ppl.reproduce._common import (
     Claim,
     Context,

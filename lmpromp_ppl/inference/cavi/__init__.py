@@ -27,7 +27,7 @@ from lmpromp_ppl.inference.cavi.data import (
     EigenCovariance,
     FullCovariance,
     SharedGram,
-    prepare_cavi_data,
+    sufficient_statistics,
 )
 from lmpromp_ppl.inference.cavi.fit import fit
 from lmpromp_ppl.inference.cavi.init import init_mixture_state, init_state, init_state_jax, ridge_weights
@@ -71,7 +71,7 @@ from lmpromp_ppl.inference.cavi.updates import (
 )
 
 __all__ = [
-    "CaviData", "DemoGrams", "SharedGram", "FullCovariance", "EigenCovariance", "prepare_cavi_data",
+    "CaviData", "DemoGrams", "SharedGram", "FullCovariance", "EigenCovariance", "sufficient_statistics",
     "FAMILIES", "CaviHyper", "hyper_arrays", "CaviState", "CaviInfo", "ExpectedStats", "expected_stats",
     "family_of", "is_mixture", "lift_single_type",
     "update_w", "update_b", "update_M", "update_h", "update_lam", "update_alpha", "update_beta",

@@ -40,7 +40,7 @@ from jax import Array
 
 from lmpromp_ppl.data.core import ModelData
 from lmpromp_ppl.errors import DataError, LmprompError
-from lmpromp_ppl.inference.cavi.data import CaviData, SharedGram, prepare_cavi_data
+from lmpromp_ppl.inference.cavi.data import CaviData, SharedGram, sufficient_statistics
 from lmpromp_ppl.inference.cavi.init import init_state, init_state_jax
 from lmpromp_ppl.inference.cavi.loop import iterate
 from lmpromp_ppl.inference.cavi.posterior import sample_q
@@ -113,7 +113,7 @@ def _prepare_datasets(datasets: Sequence[ModelData], hyper: Hyperparameters):
     shapes = {tuple(np.shape(a) for a in d) for d in datasets}
     if len(shapes) != 1:
         raise DataError(f"all datasets must have the same shapes, got {sorted(shapes)}")
-    prepared = [prepare_cavi_data(d) for d in datasets]
+    prepared = [sufficient_statistics(d) for d in datasets]
     paths = {type(p.gram).__name__ for p in prepared}
     if len(paths) != 1:
         raise DataError("all datasets must share their design matrix the same way (fast path or not)")

@@ -7,7 +7,7 @@ Every update reads the data only through :class:`CaviData`: :math:`\Psi_i^Ty_i`,
 Shared design matrix
 --------------------
 When every demonstration has the same :math:`\Psi` (:meth:`ModelData.shares_psi`),
-:func:`prepare_cavi_data` computes one eigendecomposition
+:func:`sufficient_statistics` computes one eigendecomposition
 :math:`\Psi^T\Psi = U \operatorname{diag}(s) U^T` per fit and the weight
 covariances are kept in that basis (:class:`EigenCovariance`):
 :math:`\Sigma_{w_i} = U \operatorname{diag}(1/(\beta s + \bar\alpha_i)) U^T`,
@@ -29,7 +29,7 @@ __all__ = [
     "DemoGrams",
     "SharedGram",
     "CaviData",
-    "prepare_cavi_data",
+    "sufficient_statistics",
     "check_model_data",
     "FullCovariance",
     "EigenCovariance",
@@ -78,7 +78,7 @@ class CaviData(NamedTuple):
     gram: DemoGrams | SharedGram
 
 
-def prepare_cavi_data(data: ModelData, shared_psi: bool | None = None) -> CaviData:
+def sufficient_statistics(data: ModelData, shared_psi: bool | None = None) -> CaviData:
     """Precompute the data statistics for CAVI.
 
     Parameters

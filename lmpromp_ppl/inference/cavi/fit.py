@@ -11,7 +11,7 @@ from jax import Array
 from lmpromp_ppl._progress import reporter
 from lmpromp_ppl.data.core import ModelData
 from lmpromp_ppl.errors import LmprompError
-from lmpromp_ppl.inference.cavi.data import check_model_data, prepare_cavi_data
+from lmpromp_ppl.inference.cavi.data import check_model_data, sufficient_statistics
 from lmpromp_ppl.inference.cavi.init import init_mixture_state, init_state
 from lmpromp_ppl.inference.cavi.restarts import CaviFit, best_of_restarts, check_options
 from lmpromp_ppl.inference.cavi.search import SEARCHES, fit_with_search
@@ -64,7 +64,7 @@ def fit(
     num_restarts : number of starts
     progress : True for a progress bar when stderr is a terminal, or a callable
         ``(sweeps, ELBO) -> None`` called every :data:`~lmpromp_ppl.inference.cavi.loop.CHUNK` sweeps
-    shared_psi : see :func:`~lmpromp_ppl.inference.cavi.prepare_cavi_data`
+    shared_psi : see :func:`~lmpromp_ppl.inference.cavi.sufficient_statistics`
     family : ``"columnwise"`` (the thesis's isotropic q(m_v), default) or
         ``"rowwise"`` (rows of M share one V x V covariance), see
         :data:`~lmpromp_ppl.inference.cavi.FAMILIES`
@@ -104,7 +104,7 @@ def fit(
         raise LmprompError(
             f"more mixture components (K={hyper.num_components}) than demonstrations (L={data.num_demos})"
         )
-    cavi_data = prepare_cavi_data(data, shared_psi)
+    cavi_data = sufficient_statistics(data, shared_psi)
     hyper_arr = hyper_arrays(hyper, prune_threshold if mixture else 0.0)
     keys = jax.random.split(key, num_restarts)
     label = "CAVI mixture" if mixture else "CAVI"

@@ -96,7 +96,7 @@ def init_state(
 
     Parameters
     ----------
-    data : prepared data (:func:`~.data.prepare_cavi_data`)
+    data : prepared data (:func:`~.data.sufficient_statistics`)
     hyper : hyperparameters; ``latent_dim`` is V; ``learn_beta`` adds q(beta)
         (:func:`beta_start`)
     key : when given, perturb ``M`` (by ``jitter`` times its typical entry) and
