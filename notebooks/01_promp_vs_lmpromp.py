@@ -66,7 +66,7 @@ from lmpromp_ppl.predict import (
     sample_trajectories,
     trajectory_distribution,
     unstandardise,
-    unstandardize_samples,
+    unstandardise_samples,
     via_point,
 )
 
@@ -143,7 +143,7 @@ print("rank of the sample covariance:", np.linalg.matrix_rank(np.cov(W, rowvar=F
 
 def plot_distribution(ax, weights, color, label, key=0, n=NUM_PATHS):
     """Mean path and sampled paths (data units) of a weight distribution."""
-    paths = unstandardize_samples(
+    paths = unstandardise_samples(
         sample_trajectories(jax.random.key(key), weights, phase, n, num_dofs=D, num_basis=J), scaling
     )
     for p in np.asarray(paths):

@@ -63,7 +63,7 @@ import numpy as np
 import lmpromp_ppl as lp
 from lmpromp_ppl.data import Demonstrations, load_dataset
 from lmpromp_ppl.data.synthetic import count_collisions
-from lmpromp_ppl.predict import prior, sample_trajectories, trajectory_distribution, unstandardise, unstandardize_samples
+from lmpromp_ppl.predict import prior, sample_trajectories, trajectory_distribution, unstandardise, unstandardise_samples
 
 plt.rcParams.update({"figure.dpi": 90, "axes.grid": True, "grid.alpha": 0.3})
 NUM_PATHS = 40 if SMALL else 200  # sampled trajectories for the collision count
@@ -115,7 +115,7 @@ def prior_paths(fit, n, key=0):
     weights = prior(fit.model, fit.point, fit.hyper.gamma).weights
     kw = dict(num_dofs=fit.num_dofs, num_basis=fit.num_basis)
     mean = unstandardise(trajectory_distribution(weights, phase, **kw), fit.scaling)
-    paths = unstandardize_samples(sample_trajectories(jax.random.key(key), weights, phase, n, **kw), fit.scaling)
+    paths = unstandardise_samples(sample_trajectories(jax.random.key(key), weights, phase, n, **kw), fit.scaling)
     return np.asarray(mean.mean), np.asarray(mean.component_means), np.asarray(paths)
 
 

@@ -24,7 +24,7 @@ from lmpromp_ppl.predict import (
     score_heldout,
     trajectory_distribution,
     unstandardise,
-    unstandardize_samples,
+    unstandardise_samples,
     via_point,
 )
 
@@ -563,7 +563,7 @@ def test_conditioning_jits_without_recompiling_for_new_values():
     assert fn._cache_size() == 1
 
 
-def test_unstandardize_maps_back_to_original_units():
+def test_unstandardise_maps_back_to_original_units():
     rng = np.random.default_rng(19)
     scaling = Scaling(np.array([1.0, -2.0]), np.array([2.0, 4.0]))
     weights = prior("lmpromp", lmpromp_params(rng)).weights
@@ -572,7 +572,7 @@ def test_unstandardize_maps_back_to_original_units():
     np.testing.assert_allclose(np.asarray(back.mean), scaling.invert(np.asarray(traj.mean)), atol=1e-12)
     np.testing.assert_allclose(np.asarray(back.sd), scaling.invert_sd(np.asarray(traj.sd)), atol=1e-12)
     samples = sample_trajectories(jax.random.key(2), weights, QUERY, 3, **BASIS)
-    np.testing.assert_allclose(np.asarray(unstandardize_samples(samples, scaling)), scaling.invert(np.asarray(samples)), atol=1e-12)
+    np.testing.assert_allclose(np.asarray(unstandardise_samples(samples, scaling)), scaling.invert(np.asarray(samples)), atol=1e-12)
 
 
 def test_gaussian_mixture_moments_of_a_single_component_are_its_own():

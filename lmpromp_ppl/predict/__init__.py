@@ -50,7 +50,7 @@ from lmpromp_ppl.predict.trajectories import (
     sample_weights,
     trajectory_distribution,
     unstandardise,
-    unstandardize_samples,
+    unstandardise_samples,
 )
 
 __all__ = [
@@ -85,5 +85,5 @@ __all__ = [
     "sample_weights",
     "trajectory_distribution",
     "unstandardise",
-    "unstandardize_samples",
+    "unstandardise_samples",
 ]

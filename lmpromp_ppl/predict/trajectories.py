@@ -18,7 +18,7 @@ and the mixture's moments are :math:`\bar m = \sum_k z_k m_k`,
 means; variance = average of (variance + mean^2) - mean^2).
 
 Results are in the standardised space of the fit; :func:`unstandardise` and
-:func:`unstandardize_samples` map them back with a :class:`Scaling`.
+:func:`unstandardise_samples` map them back with a :class:`Scaling`.
 """
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ __all__ = [
     "sample_weights",
     "sample_trajectories",
     "unstandardise",
-    "unstandardize_samples",
+    "unstandardise_samples",
 ]
 
 
@@ -222,7 +222,7 @@ def unstandardise(distribution: TrajectoryDistribution, scaling: Scaling) -> Tra
     )
 
 
-def unstandardize_samples(samples: ArrayLike, scaling: Scaling) -> Array:
+def unstandardise_samples(samples: ArrayLike, scaling: Scaling) -> Array:
     """Map trajectory samples (..., D) back to the original units."""
     shift = jnp.asarray(scaling.mean, dtype=jnp.float64)
     scale = jnp.asarray(scaling.scale, dtype=jnp.float64)
