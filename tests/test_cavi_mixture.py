@@ -278,7 +278,7 @@ def _prior_draws_of_removed(key, draws, state, hyper):
 
 def _c2_dropped_terms(state: cm.CaviState, hyper: cm.CaviHyper) -> float:
     """What App. C.1 / C.2 drop: the factor (d - 1) on Sigma_M in E log p(w) and (d/2) sum E log lam."""
-    st = cm.expected_stats(state, hyper)
+    st = cm.expected_stats(state, hyper, logs=True)
     d = state.w_mean.shape[1]
     M_cov = state.M_var if state.M_var.ndim == 3 else jax.vmap(jnp.diag)(state.M_var)
     sigma_terms = jnp.einsum("ik,k,kuv,ikvu->", st.resp, st.alpha_mean, M_cov, st.hhT)
@@ -450,7 +450,7 @@ def _thesis_alpha(state, data, hyper):
 def _thesis_z(state, data, hyper):
     """rho_k of Sec. 4.2.1: a_bar_k / 2 in place of alpha_bar_k / 2."""
     d = state.w_mean.shape[1]
-    st = cm.expected_stats(state, hyper)
+    st = cm.expected_stats(state, hyper, logs=True)
     logits = st.log_pi_mean + 0.5 * d * st.log_alpha_mean - 0.5 * state.alpha_shape * st.residual_sq
     return state._replace(resp=jax.nn.softmax(logits, axis=1))
 

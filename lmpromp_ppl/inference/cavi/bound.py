@@ -30,7 +30,7 @@ def elbo(state: CaviState, data: CaviData, hyper: CaviHyper) -> Array:
     for C.2's :math:`d\\sigma_{b_k}^{-1}`, the weights :math:`r_{ik}` on
     :math:`E\\log p(w_i\\mid\\cdot)`, the signs of the entropy terms, and the constants.
     """
-    st = expected_stats(state, hyper)
+    st = expected_stats(state, hyper, logs=True)
     L, d = state.w_mean.shape
     K, V = state.lam_shape.shape
     act = state.active

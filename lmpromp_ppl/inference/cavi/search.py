@@ -149,7 +149,7 @@ def split_candidates(state: CaviState, hyper: CaviHyper, min_count: float = 2.0)
     demonstration, :math:`-\\frac1{N_k}\\sum_ir_{ik}\\big(\\frac d2(E\\log\\alpha_k - \\log 2\\pi)
     - \\frac{\\bar\\alpha_k}2E\\|w_i - b_k - M_kh_{ik}\\|^2\\big)`.
     """
-    st = expected_stats(state, hyper)
+    st = expected_stats(state, hyper, logs=True)
     d = state.w_mean.shape[1]
     resp = np.asarray(st.resp)
     counts = resp.sum(axis=0)

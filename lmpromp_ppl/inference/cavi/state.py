@@ -227,6 +227,10 @@ class ExpectedStats(NamedTuple):
     residual_sq : (L, K) :math:`E\\|w_i - b_k - M_kh_{ik}\\|^2`
     beta_mean, log_beta_mean : () :math:`E[\\beta]`, :math:`E[\\log\\beta]` (the fixed value when not learned)
     log_pi_mean : (K,) :math:`E[\\log\\pi_k] = \\psi(\\hat\\kappa_k) - \\psi(\\sum_j\\hat\\kappa_j)`, or None
+
+    The log-expectations (``log_alpha_mean``, ``log_lam_mean``, ``log_beta_mean``,
+    ``log_pi_mean``) are None unless asked for (``logs=True``): only the bound and the
+    update of q(z) need them, and each digamma is a large expression to compile.
     """
 
     resp: Array
@@ -243,8 +247,11 @@ class ExpectedStats(NamedTuple):
     log_pi_mean: Array | None
 
 
-def expected_stats(state: CaviState, hyper: CaviHyper) -> ExpectedStats:
-    """Moments of q (App. B.1 helper functions 3 and 4 with the factor d kept; App. B.2 per component)."""
+def expected_stats(state: CaviState, hyper: CaviHyper, *, logs: bool = False) -> ExpectedStats:
+    """Moments of q (App. B.1 helper functions 3 and 4 with the factor d kept; App. B.2 per component).
+
+    ``logs=True`` adds the log-expectations (digammas) that the bound and q(z) use.
+    """
     L, d = state.w_mean.shape
     K = state.M_mean.shape[0]
     if state.M_var.ndim == 3:
@@ -263,23 +270,24 @@ def expected_stats(state: CaviState, hyper: CaviHyper) -> ExpectedStats:
         - 2.0 * jnp.einsum("ikd,kdv,ikv->ik", offset, state.M_mean, state.h_mean)
         + jnp.einsum("kuv,ikvu->ik", MtM, hhT)
     )
-    if state.resp is None:
-        resp = jnp.ones((L, K))
-        log_pi_mean = None
-    else:
-        resp = jnp.where(state.active[None], state.resp, 0.0)
-        log_pi_mean = digamma(state.pi_conc) - digamma(jnp.sum(state.pi_conc))
+    resp = jnp.ones((L, K)) if state.resp is None else jnp.where(state.active[None], state.resp, 0.0)
     learned = state.beta_learned
     beta_mean = jnp.where(learned, state.beta_shape / state.beta_rate, hyper.beta)
-    log_beta_mean = jnp.where(
-        learned, digamma(state.beta_shape) - jnp.log(state.beta_rate), jnp.log(hyper.beta)
-    )
+    log_alpha_mean = log_lam_mean = log_beta_mean = log_pi_mean = None
+    if logs:
+        log_alpha_mean = digamma(state.alpha_shape) - jnp.log(state.alpha_rate)
+        log_lam_mean = digamma(state.lam_shape) - jnp.log(state.lam_rate)
+        log_beta_mean = jnp.where(
+            learned, digamma(state.beta_shape) - jnp.log(state.beta_rate), jnp.log(hyper.beta)
+        )
+        if state.resp is not None:
+            log_pi_mean = digamma(state.pi_conc) - digamma(jnp.sum(state.pi_conc))
     return ExpectedStats(
         resp=resp,
         alpha_mean=state.alpha_shape / state.alpha_rate,
-        log_alpha_mean=digamma(state.alpha_shape) - jnp.log(state.alpha_rate),
+        log_alpha_mean=log_alpha_mean,
         lam_mean=state.lam_shape / state.lam_rate,
-        log_lam_mean=digamma(state.lam_shape) - jnp.log(state.lam_rate),
+        log_lam_mean=log_lam_mean,
         M_col_var=M_col_var,
         MtM=MtM,
         hhT=hhT,

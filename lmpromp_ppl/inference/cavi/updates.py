@@ -232,7 +232,7 @@ def update_z(state: CaviState, data: CaviData, hyper: CaviHyper) -> CaviState:
     """
     del data
     d = state.w_mean.shape[1]
-    st = expected_stats(state, hyper)
+    st = expected_stats(state, hyper, logs=True)
     logits = st.log_pi_mean[None] + 0.5 * d * st.log_alpha_mean[None] - 0.5 * st.alpha_mean[None] * st.residual_sq
     logits = jnp.where(state.active[None], logits, -jnp.inf)
     return state._replace(resp=jax.nn.softmax(logits, axis=1))
