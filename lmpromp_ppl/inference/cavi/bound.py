@@ -50,10 +50,19 @@ def elbo(state: CaviState, data: CaviData, hyper: CaviHyper) -> Array:
     log_p_M = jnp.sum(
         jnp.where(act[:, None], 0.5 * d * (st.log_lam_mean - _LOG_2PI) - 0.5 * st.lam_mean * m_sq, 0.0)
     )
-    log_p_alpha = jnp.sum(jnp.where(act, gamma_log_prior(hyper.a0, hyper.b0, st.log_alpha_mean, st.alpha_mean), 0.0))
-    log_p_lam = jnp.sum(
-        jnp.where(act[:, None], gamma_log_prior(hyper.c0, hyper.d0, st.log_lam_mean, st.lam_mean), 0.0)
-    )
+    # one gammaln over every shape of q and of the priors (each call is a large expression to compile)
+    conc = state.pi_conc
+    prior_shapes = [hyper.a0[None], hyper.c0[None], hyper.beta_a0[None]]
+    if state.resp is not None:
+        prior_shapes += [hyper.kappa0[None], (K * hyper.kappa0)[None], jnp.sum(conc)[None], conc]
+    lg = gammaln(jnp.concatenate(
+        [state.alpha_shape, state.lam_shape.reshape(-1), state.beta_shape[None]] + prior_shapes))
+    lg_alpha, lg_lam, lg_beta = lg[:K], lg[K : K + K * V].reshape(K, V), lg[K + K * V]
+    lg_a0, lg_c0, lg_beta_a0 = lg[K + K * V + 1], lg[K + K * V + 2], lg[K + K * V + 3]
+    log_p_alpha = jnp.sum(jnp.where(
+        act, gamma_log_prior(hyper.a0, hyper.b0, st.log_alpha_mean, st.alpha_mean, lg_a0), 0.0))
+    log_p_lam = jnp.sum(jnp.where(
+        act[:, None], gamma_log_prior(hyper.c0, hyper.d0, st.log_lam_mean, st.lam_mean, lg_c0), 0.0))
     if state.M_var.ndim == 3:
         entropy_M = d * (0.5 * V * (1.0 + _LOG_2PI) + 0.5 * logdet_psd(state.M_var))
     else:
@@ -63,22 +72,23 @@ def elbo(state: CaviState, data: CaviData, hyper: CaviHyper) -> Array:
         + jnp.sum(jnp.where(act[None], 0.5 * V * (1.0 + _LOG_2PI) + 0.5 * logdet_psd(state.h_cov), 0.0))
         + jnp.sum(jnp.where(act, 0.5 * d * (1.0 + _LOG_2PI + jnp.log(state.b_var)), 0.0))
         + jnp.sum(jnp.where(act, entropy_M, 0.0))
-        + jnp.sum(jnp.where(act, gamma_entropy(state.alpha_shape, state.alpha_rate), 0.0))
-        + jnp.sum(jnp.where(act[:, None], gamma_entropy(state.lam_shape, state.lam_rate), 0.0))
+        + jnp.sum(jnp.where(act, gamma_entropy(state.alpha_shape, state.alpha_rate, st.log_alpha_mean, lg_alpha), 0.0))
+        + jnp.sum(jnp.where(act[:, None], gamma_entropy(state.lam_shape, state.lam_rate, st.log_lam_mean, lg_lam), 0.0))
     )
     total = log_lik + log_p_w + log_p_h + log_p_b + log_p_M + log_p_alpha + log_p_lam + entropy
-    beta_terms = gamma_log_prior(hyper.beta_a0, hyper.beta_b0, st.log_beta_mean, st.beta_mean)
-    beta_terms = beta_terms + gamma_entropy(state.beta_shape, state.beta_rate)
+    # q(beta)'s terms; log_beta_mean is the Gamma's own E[log beta] where beta is learned
+    beta_terms = gamma_log_prior(hyper.beta_a0, hyper.beta_b0, st.log_beta_mean, st.beta_mean, lg_beta_a0)
+    beta_terms = beta_terms + gamma_entropy(state.beta_shape, state.beta_rate, st.log_beta_mean, lg_beta)
     total = total + jnp.where(state.beta_learned, beta_terms, 0.0)
     if state.resp is not None:
-        conc = state.pi_conc
+        lg_kappa0, lg_K_kappa0, lg_sum_conc, lg_conc = lg[-K - 3], lg[-K - 2], lg[-K - 1], lg[-K:]
         # E log p(z | pi) - E log q(z)
         total = total + jnp.sum(st.resp * st.log_pi_mean[None]) - jnp.sum(xlogx(st.resp))
         # E log Dir(pi | kappa0) - E log Dir(pi | conc)
         total = total + (
-            gammaln(K * hyper.kappa0) - K * gammaln(hyper.kappa0)
+            lg_K_kappa0 - K * lg_kappa0
             + (hyper.kappa0 - 1.0) * jnp.sum(st.log_pi_mean)
-            - gammaln(jnp.sum(conc)) + jnp.sum(gammaln(conc))
+            - lg_sum_conc + jnp.sum(lg_conc)
             - jnp.sum((conc - 1.0) * st.log_pi_mean)
         )
     return total

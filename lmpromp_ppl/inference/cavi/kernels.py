@@ -110,14 +110,25 @@ def M_rows_posterior(
     return mean, cov
 
 
-def gamma_entropy(shape: Array, rate: Array) -> Array:
-    """Entropy of :math:`\\Gamma(\\text{shape}, \\text{rate})`."""
-    return shape - jnp.log(rate) + gammaln(shape) + (1.0 - shape) * digamma(shape)
+def gamma_entropy(
+    shape: Array, rate: Array, log_mean: Array | None = None, gammaln_shape: Array | None = None
+) -> Array:
+    """Entropy of :math:`\\Gamma(\\text{shape}, \\text{rate})`: :math:`a - \\log b + \\log\\Gamma(a) + (1 - a)\\psi(a)`.
+
+    ``log_mean`` (:math:`E[\\log x] = \\psi(a) - \\log b`) and ``gammaln_shape``
+    (:math:`\\log\\Gamma(a)`), when given, are used instead of evaluating the special
+    functions again (the bound evaluates each once, for every factor together).
+    """
+    psi = digamma(shape) if log_mean is None else log_mean + jnp.log(rate)
+    lgamma = gammaln(shape) if gammaln_shape is None else gammaln_shape
+    return shape - jnp.log(rate) + lgamma + (1.0 - shape) * psi
 
 
-def gamma_log_prior(shape0: Array, rate0: Array, log_mean: Array, mean: Array) -> Array:
+def gamma_log_prior(shape0: Array, rate0: Array, log_mean: Array, mean: Array,
+                    gammaln_shape0: Array | None = None) -> Array:
     """:math:`E_q[\\log\\Gamma(x\\mid a_0, b_0)]` from :math:`E[\\log x]` and :math:`E[x]`."""
-    return shape0 * jnp.log(rate0) - gammaln(shape0) + (shape0 - 1.0) * log_mean - rate0 * mean
+    lgamma = gammaln(shape0) if gammaln_shape0 is None else gammaln_shape0
+    return shape0 * jnp.log(rate0) - lgamma + (shape0 - 1.0) * log_mean - rate0 * mean
 
 
 def xlogx(x: Array) -> Array:

@@ -275,13 +275,17 @@ def expected_stats(state: CaviState, hyper: CaviHyper, *, logs: bool = False) ->
     beta_mean = jnp.where(learned, state.beta_shape / state.beta_rate, hyper.beta)
     log_alpha_mean = log_lam_mean = log_beta_mean = log_pi_mean = None
     if logs:
-        log_alpha_mean = digamma(state.alpha_shape) - jnp.log(state.alpha_rate)
-        log_lam_mean = digamma(state.lam_shape) - jnp.log(state.lam_rate)
-        log_beta_mean = jnp.where(
-            learned, digamma(state.beta_shape) - jnp.log(state.beta_rate), jnp.log(hyper.beta)
-        )
+        # one digamma over every Gamma and Dirichlet shape: each call is a large expression to compile
+        V = state.lam_shape.shape[1]
+        shapes = [state.alpha_shape, state.lam_shape.reshape(-1), state.beta_shape[None]]
         if state.resp is not None:
-            log_pi_mean = digamma(state.pi_conc) - digamma(jnp.sum(state.pi_conc))
+            shapes += [state.pi_conc, jnp.sum(state.pi_conc)[None]]
+        psi = digamma(jnp.concatenate(shapes))
+        log_alpha_mean = psi[:K] - jnp.log(state.alpha_rate)
+        log_lam_mean = psi[K : K + K * V].reshape(K, V) - jnp.log(state.lam_rate)
+        log_beta_mean = jnp.where(learned, psi[K + K * V] - jnp.log(state.beta_rate), jnp.log(hyper.beta))
+        if state.resp is not None:
+            log_pi_mean = psi[K + K * V + 1 : -1] - psi[-1]
     return ExpectedStats(
         resp=resp,
         alpha_mean=state.alpha_shape / state.alpha_rate,
