@@ -45,6 +45,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import Array
 from jax.scipy.special import digamma
 
@@ -187,30 +188,40 @@ def lift_single_type(fields: dict, family: str = "columnwise", beta: tuple[float
     """
     check_family(family)
     shape, rate = (1.0, 1.0) if beta is None else beta
-    f64 = lambda x: jnp.asarray(x, jnp.float64)  # noqa: E731
-    M_var = f64(fields["M_var"])[None]
+    M_var = _expand(fields["M_var"], 0)
     if family == "rowwise":
         M_var = jax.vmap(jnp.diag)(M_var)
     return CaviState(
         w_mean=fields["w_mean"],
         w_cov=fields["w_cov"],
-        h_mean=f64(fields["h_mean"])[:, None],
-        h_cov=f64(fields["h_cov"])[:, None],
-        b_mean=f64(fields["b_mean"])[None],
-        b_var=f64(fields["b_var"])[None],
-        M_mean=f64(fields["M_mean"])[None],
+        h_mean=_expand(fields["h_mean"], 1),
+        h_cov=_expand(fields["h_cov"], 1),
+        b_mean=_expand(fields["b_mean"], 0),
+        b_var=_expand(fields["b_var"], 0),
+        M_mean=_expand(fields["M_mean"], 0),
         M_var=M_var,
-        alpha_shape=f64(fields["alpha_shape"])[None],
-        alpha_rate=f64(fields["alpha_rate"])[None],
-        lam_shape=f64(fields["lam_shape"])[None],
-        lam_rate=f64(fields["lam_rate"])[None],
+        alpha_shape=_expand(fields["alpha_shape"], 0),
+        alpha_rate=_expand(fields["alpha_rate"], 0),
+        lam_shape=_expand(fields["lam_shape"], 0),
+        lam_rate=_expand(fields["lam_rate"], 0),
         resp=None,
         pi_conc=None,
-        beta_shape=f64(shape),
-        beta_rate=f64(rate),
+        beta_shape=jnp.asarray(shape, jnp.float64),
+        beta_rate=jnp.asarray(rate, jnp.float64),
         beta_learned=jnp.asarray(beta is not None),
         active=jnp.ones((1,), jnp.bool_),
     )
+
+
+def _expand(x, axis: int):
+    """``x`` as float64 with a new axis of length 1 at ``axis``.
+
+    Concrete values are expanded in NumPy: on a device array every new shape of
+    an indexing op compiles a small program, which a user waits for at each start.
+    """
+    if isinstance(x, jax.core.Tracer):
+        return jnp.expand_dims(jnp.asarray(x, jnp.float64), axis)
+    return jnp.asarray(np.expand_dims(np.asarray(x, np.float64), axis))
 
 
 class ExpectedStats(NamedTuple):
