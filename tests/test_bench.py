@@ -38,7 +38,7 @@ def result():
     return bench.run_benchmark(_config((TINY,)), gpu_note="not run in the tests")
 
 
-def test_shared_cavi_data_equals_prepare_cavi_data():
+def test_shared_cavi_data_equals_sufficient_statistics():
     demos = bench.row_demonstrations(bench.RowSpec("x", L=5, D=2, J=4, V=2, T=15, seed=3))
     fast = bench.shared_cavi_data(demos, 4)
     ref = cavi.sufficient_statistics(model_data(demos, 4))
