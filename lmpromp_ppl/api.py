@@ -183,8 +183,9 @@ def select_num_basis(
     start = time.perf_counter()
     if isinstance(data, PreparedDataset):
         base_data = data
-    else:
-        base_data = prepare_dataset(data, 2, standardise=standardise, width=width)
+    else:  # built at the grid's first size, which the loop below then reuses
+        first = min([int(J) for J in grid if int(J) >= 2], default=2)
+        base_data = prepare_dataset(data, first, standardise=standardise, width=width)
     demos = base_data.scaled
     base = (preset("default") if hyper is None else hyper).replace(num_components=1)
     shortest = int(np.min(demos.lengths))
@@ -194,7 +195,7 @@ def select_num_basis(
         raise LmprompError(f"no basis size of {list(grid)} fits demonstrations of {shortest} samples")
     bounds, best = [], None
     for J in sizes:
-        prepared = base_data.with_basis(J)
+        prepared = base_data if J == base_data.num_basis else base_data.with_basis(J)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             res = _fit_prepared(prepared, "lmpromp", "cavi", base, seed=seed, progress=False, options={})
@@ -207,7 +208,7 @@ def select_num_basis(
 
 def _fit_auto_basis(data, model, engine, hyper, *, width, seed, standardise, progress, options) -> FitResult:
     """``fit(..., num_basis="auto")``: :func:`select_num_basis`, then the requested fit at the chosen J."""
-    prepared = prepare_dataset(data, 2, standardise=standardise, width=width)
+    prepared = prepare_dataset(data, min(AUTO_NUM_BASIS), standardise=standardise, width=width)
     if model == "mixture" and prepared.raw.num_demos < hyper.num_components:
         raise LmprompError(f"fewer demonstrations (L={prepared.raw.num_demos}) than mixture components "
                            f"(K={hyper.num_components})")
