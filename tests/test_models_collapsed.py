@@ -6,7 +6,10 @@
   arbitrary w (full model minus the dense conditional of eqs. 3.2-3.3), the same
   for h, and for the mixture the log-sum-exp over every assignment z;
 * draws of sample_w_given_theta / sample_h_given_theta have the mean and
-  covariance of the exact conditional within 4 Monte Carlo standard errors.
+  covariance of the exact conditional within 4 Monte Carlo standard errors;
+* the LMProMP with b integrated out as well (``"whb"``): its density equals one
+  dense Gaussian over all demonstrations' observed entries, and
+  log p(y, b, theta) - log p(b | y, theta) at an arbitrary b.
 """
 
 import itertools
@@ -20,6 +23,7 @@ from numpyro import handlers
 from numpyro.infer import Predictive
 from numpyro.infer.util import log_density
 from scipy import special, stats
+from scipy.linalg import block_diag
 
 from lmpromp_ppl.data.core import Demonstrations, ModelData, model_data
 from lmpromp_ppl.errors import LmprompError
@@ -34,7 +38,9 @@ from lmpromp_ppl.models import (
     sample_h_given_theta,
     sample_w_given_theta,
 )
-from lmpromp_ppl.models.conditionals import gaussian_conditional
+from lmpromp_ppl.models.collapsed import lmpromp_offset_collapsed_model
+from lmpromp_ppl.models.conditionals import data_statistics, gaussian_conditional, offset_marginal
+from lmpromp_ppl.models.lmpromp import masked_observations
 
 HYPER = Hyperparameters(
     beta=4.0, lambda0=0.7, gamma=1.3, a0=2.5, b0=0.6, c0=1.7, d0=0.9, latent_dim=2,
@@ -426,3 +432,42 @@ def test_traced_data_and_finite_gradients(data):
     value, grads = jax.jit(jax.value_and_grad(f))(p, data)
     assert float(value) == pytest.approx(logp(mixture_collapsed_model, data, HYPER, p, collapse_h=True), rel=1e-12)
     assert all(np.all(np.isfinite(g)) for g in jax.tree_util.tree_leaves(grads))
+
+
+# ------------------------------------------------------------- b integrated out ("whb")
+@pytest.mark.parametrize("learn_beta", [False, True])
+def test_offset_collapsed_density_matches_one_dense_gaussian(data, learn_beta):
+    """b couples the demonstrations: y (all observed entries) ~ N(0, blockdiag K_i + Psi Psi^T / lambda0)."""
+    hyper = HYPER.replace(learn_beta=learn_beta)
+    p = draw("lmpromp", hyper, data, 7)
+    rows = [observed_rows(data, i) for i in range(data.psi.shape[0])]
+    psi_all = np.concatenate([r[0] for r in rows])
+    y_all = np.concatenate([r[1] for r in rows])
+    blocks = [psi @ weight_prior(hyper, p, i, keep_h=False)[1] @ psi.T + np.eye(len(y)) / beta_of(hyper, p)
+              for i, (psi, y) in enumerate(rows)]
+    cov = block_diag(*blocks) + psi_all @ psi_all.T / hyper.lambda0
+    prior = prior_logp(hyper, p, "lmpromp", keep_h=False) - stats.norm.logpdf(p["b"], 0, hyper.lambda0**-0.5).sum()
+    expected = prior + stats.multivariate_normal.logpdf(y_all, np.zeros(len(y_all)), cov)
+    sites = {k: v for k, v in p.items() if k not in ("b", "h")}
+    assert logp(lmpromp_offset_collapsed_model, data, hyper, sites) == pytest.approx(expected, rel=1e-10)
+
+
+def test_collapsing_b_equals_joint_minus_conditional(data):
+    """log p(y, theta) = log p(y, b, theta) - log p(b | y, theta) for every b (w and h integrated out).
+
+    The identity holds for all b only when both the marginal and the conditional
+    of :func:`offset_marginal` are exact.
+    """
+    hyper = HYPER.replace(learn_beta=True)
+    p = draw("lmpromp", hyper, data, 8)
+    sites = {k: v for k, v in p.items() if k not in ("b", "h")}
+    collapsed = logp(lmpromp_offset_collapsed_model, data, hyper, sites)
+    _, mean, chol = offset_marginal(
+        data_statistics(masked_observations(data)), p["M"], p["alpha"], p["beta"], hyper.lambda0, hyper.gamma
+    )
+    cov = np.linalg.inv(np.asarray(chol) @ np.asarray(chol).T)
+    rng = np.random.default_rng(9)
+    for _ in range(3):
+        b = rng.normal(size=mean.shape)
+        joint = logp(lmpromp_collapsed_model, data, hyper, {**sites, "b": b}, collapse_h=True)
+        assert joint - stats.multivariate_normal.logpdf(b, mean, cov) == pytest.approx(collapsed, rel=1e-10)

@@ -187,6 +187,14 @@ def test_nuts_rejects_bad_options(data, hyper):
         fit_nuts("lmpromp", data, hyper, jax.random.key(0), collapsed="hw")
     with pytest.raises(LmprompError, match="no control variables"):
         fit_nuts("promp", data, hyper, jax.random.key(0), collapsed="wh")
+    with pytest.raises(LmprompError, match="offsets"):
+        fit_nuts("mixture", data, preset("proper", latent_dim=1, num_components=2), jax.random.key(0), collapsed="whb")
+    with pytest.raises(LmprompError, match="init must be"):
+        fit_nuts("lmpromp", data, hyper, jax.random.key(0), init="pathfinder")
+    with pytest.raises(LmprompError, match="CAVI start"):
+        fit_nuts("promp", data, preset("proper", latent_dim=1), jax.random.key(0), init="cavi")
+    with pytest.raises(LmprompError, match="one per chain"):
+        fit_nuts("lmpromp", data, hyper, jax.random.key(0), init_values={"alpha": np.ones(3)})
     with pytest.raises(LmprompError, match="unknown sites"):
         fit_nuts("lmpromp", data, hyper, jax.random.key(0), fixed={"beta": 1.0})
     with pytest.raises(LmprompError, match="shape"):
@@ -195,10 +203,38 @@ def test_nuts_rejects_bad_options(data, hyper):
         fit_nuts("lmpromp", data, hyper, jax.random.key(0), target_accept=1.0)
 
 
-def test_default_nuts_learns_the_noise(data):
-    """The default preset of the sampling engines infers beta (docs/defaults.md)."""
-    hyper = preset("proper", latent_dim=1)
+def test_nuts_starts_from_cavi_and_integrates_b(data):
+    """``collapsed="whb"``, ``init="cavi"``: ``b`` integrated out and drawn afterwards, one CAVI
+    start per chain, and the noise learned (the sampling engines' preset infers beta, docs/defaults.md)."""
+    hyper = preset("proper", latent_dim=2)
     assert hyper.learn_beta
-    result = fit_nuts("lmpromp", data, hyper, jax.random.key(3), num_chains=1, num_warmup=60, num_samples=40)
-    beta = np.asarray(result.samples["beta"])
-    assert beta.shape == (1, 40) and np.all(beta > 0)
+    result = fit_nuts("lmpromp", data, hyper, jax.random.key(4), num_chains=2, num_warmup=60, num_samples=40,
+                      collapsed="whb", init="cavi")
+    assert np.all(result.samples["beta"] > 0)
+    assert result.options["collapsed"] == "whb" and result.options["init"] == "cavi"
+    assert result.options["init_seconds"] > 0
+    shapes = {k: v.shape for k, v in result.samples.items()}
+    L, _, d = data.psi.shape
+    assert shapes["b"] == (2, 40, d) and shapes["w"] == (2, 40, L, d) and shapes["h"] == (2, 40, L, 2)
+    assert all(np.all(np.isfinite(v)) for v in result.samples.values())
+    # b is a fresh draw of its conditional at every step: it moves whenever M or alpha move
+    assert np.all(np.std(result.samples["b"], axis=1) > 0)
+
+
+def test_per_chain_starts_are_used(data, hyper):
+    """``init_values`` with a chain axis: chain c starts at its own value.
+
+    Same key twice: with per-chain starts (s0, s1) and with s0 shared, chain 0 is
+    identical in the two runs and chain 1 is not.
+    """
+    d = data.psi.shape[2]
+    M = np.random.default_rng(7).normal(size=(2, d, 2))
+    per_chain = {"alpha": np.array([2.0, 50.0]), "lam": np.array([[1.0, 2.0], [30.0, 40.0]]), "M": M}
+    shared = {k: v[0] for k, v in per_chain.items()}
+    runs = [
+        fit_nuts("lmpromp", data, hyper, jax.random.key(6), num_chains=2, num_warmup=5, num_samples=3, init_values=v)
+        for v in (per_chain, shared)
+    ]
+    assert runs[0].options["init"] == "uniform"
+    np.testing.assert_array_equal(runs[0].samples["alpha"][0], runs[1].samples["alpha"][0])
+    assert not np.array_equal(runs[0].samples["alpha"][1], runs[1].samples["alpha"][1])

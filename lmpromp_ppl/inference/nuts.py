@@ -14,7 +14,7 @@ the posterior couples ``L * d`` weights to :math:`\alpha` through the funnel
 :math:`\mathbf w_i \sim \mathcal N(\mathbf b + \mathbf M \mathbf h_i, \alpha^{-1} I)`
 (orientation figures from the issue: ``L = 20, D = 2, J = 10, V = 3``,
 2 chains x (500 + 500): R-hat 1.08, bulk ESS 22 in 70 s).  The default
-parametrisation (``collapsed="auto"``, ``noncentered=True``) is
+parametrisation (``collapsed="auto"``, ``noncentered=True``, ``init="uniform"``) is
 
 * **collapsed over w and h** (``"wh"``): :math:`\mathbf w_i` and
   :math:`\mathbf h_i` are integrated out analytically,
@@ -24,7 +24,10 @@ parametrisation (``collapsed="auto"``, ``noncentered=True``) is
   ``lam`` (and ``pi``) to sample; afterwards ``w`` is drawn from the exact
   conditional :math:`p(\mathbf w_i | \theta, \mathbf y_i)` and ``h`` from
   :math:`p(\mathbf h_i | \mathbf w_i, \theta)` once per posterior draw, so
-  every result still has the sites ``w`` and ``h``.  ``collapsed="w"``
+  every result still has the sites ``w`` and ``h``.  ``collapsed="whb"``
+  integrates the LMProMP's offset ``b`` out as well
+  (:func:`lmpromp_ppl.models.conditionals.offset_marginal`) and draws it
+  afterwards from :math:`p(\mathbf b | \theta, \mathbf y)`; ``collapsed="w"``
   integrates out ``w`` only (``h`` sampled), ``collapsed="none"`` samples the
   full model; the ProMP has no ``h`` and uses ``"w"``;
 * **non-centred projection**: the columns
@@ -35,28 +38,64 @@ parametrisation (``collapsed="auto"``, ``noncentered=True``) is
   which removes the funnel between a switched-off column and its precision;
   in the full LMProMP ``w`` is non-centred the same way;
 * the ``proper`` hyperparameter preset (Gamma(1e-5, 1e-5) is nearly improper
-  and NUTS cannot explore it), and V (and K) restricted to what CAVI kept
-  active: a switched-off column has no likelihood information, its
-  :math:`\lambda_v` then wanders over its prior, which is harmless for the
-  identifiable quantities but costs tree depth.
+  and NUTS cannot explore it).
 
-Measured on ``synthetic:latent?L=20&D=2&J=10&V=3&seed=0`` (standardised,
-J = 10, ``preset("proper", latent_dim=3)``), 2 chains x (500 + 500), target
-acceptance 0.8, key 0; worst R-hat and smallest bulk / tail ESS over the
-elements of ``b``, ``alpha``, sorted ``lam`` and the eigenvalues of
-:math:`\mathbf M \mathbf M^T`; no divergences in any run; times on a shared,
-heavily loaded 2-core machine (compare them with each other only):
+``init="cavi"`` starts each chain at its own draw from the CAVI posterior of
+the same model (:func:`lmpromp_ppl.inference.warm_start.cavi_start`).
 
-=====================  ===========  ===============  ===============  ==========  =========
-collapsed, M           R-hat max    bulk ESS min     tail ESS min     tree depth  seconds
-=====================  ===========  ===============  ===============  ==========  =========
-``"w"``, centred       1.004        348 (gram_eig)   453 (b)          7-9         340
-``"w"``, non-centred   1.005        560 (alpha)      497 (b)          8-9         450
-``"wh"``, non-centred  1.008        696 (lam)        433 (b)          7-8         351
-=====================  ===========  ===============  ===============  ==========  =========
+Measured with 2 chains x 500 draws, worst R-hat and smallest bulk / tail ESS
+over the identifiable quantities below (the quantity in brackets), no
+divergences; seconds of warm-up plus sampling on the 2-core machine (compare
+them with each other only).  GShape is the demo's data
+(``lasa:GShape?every=20``, J = 20, d = 40, L = 7, V = 2); *synthetic* is
+``synthetic:latent?L=20&D=2&J=10&V=3&seed=0`` (J = 10, d = 20, V = 3);
+GunPoint is ``gunpoint:train`` (L = 50, J = 10, d = 10, V = 2), the ``lmpromp
+compare`` runs of ``reports/compare/gunpoint`` (the worst quantity there also
+covers the predictive mean and s.d.; the ``"whb"`` run shared the machine with
+another job part of the time):
 
-so ``"wh"`` with a non-centred ``M`` is the default; ``tests/test_nuts_reliability.py``
-(marked ``slow``) asserts R-hat <= 1.01 and bulk ESS >= 400 for it.
+=========  ===============================  ===  ======  ================  =============  ==========  ===  ============
+data       collapsed, start, warm-up        key  R-hat   bulk ESS          tail ESS       tree depth  s    bulk ESS / s
+=========  ===============================  ===  ======  ================  =============  ==========  ===  ============
+GShape     ``"wh"``, uniform, 500 (default)  0   1.013   111 (b)           158            4-5         71   1.6
+GShape     ``"wh"``, uniform, 500 (default)  1   1.050   63 (b)            73             4-5         75   0.8
+GShape     ``"wh"``, CAVI, 500               0   1.017   96 (b)            86             4-5         77   1.3
+GShape     ``"wh"``, b held fixed, 200       0   1.008   362               281            4           37   9.8
+GShape     ``"whb"``, uniform, 500           0   1.013   246 (alpha)       283            4           69   3.6
+GShape     ``"whb"``, CAVI, 500              0   1.014   122 (alpha)       121            4           60   2.0
+GShape     ``"whb"``, CAVI, 500              1   1.018   157 (alpha)       70             4           67   2.3
+GShape     ``"whb"``, CAVI, 200              0   1.007   234 (alpha)       124            4           46   5.1
+synthetic  ``"wh"``, CAVI, 500               0   1.008   539 (b)           353 (b)        6-8         213  2.5
+synthetic  ``"whb"``, uniform, 500           0   1.010   217 (alpha)       479            5-7         119  1.8
+synthetic  ``"whb"``, CAVI, 500              0   1.012   309 (lam)         157 (lam)      --          --   --
+GunPoint   ``"wh"``, uniform, 500 (default)  0   1.011   306 (b)           443            --          524  0.6
+GunPoint   ``"whb"``, CAVI, 500              0   1.013   347 (pred. sd)    340 (lam)      --          123  2.8
+=========  ===============================  ===  ======  ================  =============  ==========  ===  ============
+
+(b held fixed is not an option: it shows what sampling the offset costs.)
+Integrating ``b`` out makes the offset mix best (bulk ESS 640-810 on GShape,
+from 63-111), raises GShape's bulk ESS per second 1.3-2.8 times and
+GunPoint's about 4.8 times (its likelihood is then evaluated in the
+10-dimensional weight space instead of on 150 samples per demonstration), but on
+the synthetic set, where ``b`` is not what limits the default, it shortens the
+trees and ``alpha`` and ``lam`` mix worse (bulk ESS 217-309 against 539-916),
+and the ``slow`` reliability test below fails with it; the CAVI start makes no
+consistent difference.  Neither is therefore the default.  The ESS of a single
+run varies by a factor of about two between keys.  What limits ``alpha`` and
+``lam`` is the trade-off between :math:`\alpha^{-1}` and the column scales of M
+(both explain the demonstrations' spread) through ``lam``: on GShape, with
+``lam`` held at the CAVI posterior mean (``"whb"``, centred M, key 0), R-hat is
+1.002-1.005, bulk ESS 473-782 and tail ESS 499-737 on every quantity.
+Integrating the ARD precisions out as well (a multivariate Student-t prior on
+each column of M) is the next candidate; a switched-off column then has the
+t's spike at 0, the funnel the non-centred M avoids today.  A dense mass matrix
+(``dense_mass=True``) did not finish within 200 s on GShape (warm-up at the
+maximum tree depth), and chains in lock-step (``chain_method="vectorized"``)
+took 140-240 s against 60-67 s, so the mass matrix stays diagonal and the
+chains sequential.  ``tests/test_nuts_reliability.py`` (marked ``slow``)
+asserts R-hat <= 1.01 and bulk ESS >= 400 for the default on the synthetic
+set (measured before: R-hat 1.008, bulk ESS 696, tail ESS 433).
+
 Identifiable quantities: ``b``, ``alpha``, ``lam`` sorted, and the
 eigenvalues of :math:`\mathbf M \mathbf M^T` (:func:`lmpromp_ppl.quantities.invariant_quantities`);
 ``M`` and ``h`` are identified only up to a rotation and sign of the latent
@@ -69,7 +108,8 @@ one XLA program, compiled ahead of time (``jax.jit(...).lower(...).compile()``)
 and cached per static configuration (model, hyperparameters, options and the
 shapes of the data), so ``compile_seconds`` is the tracing and compilation time
 (close to 0 when a cached program is reused) and ``seconds`` is the execution
-time only.  Chains run in the same program, either one after the other
+time only; the CAVI fit of the start is timed apart (``options["init_seconds"]``).
+Chains run in the same program, either one after the other
 (``chain_method="sequential"``, ``lax.map``: each chain stops its trees at its
 own U-turns) or in lock-step (``"vectorized"``, ``vmap``: every step costs the
 longest tree among the chains, but the linear algebra is batched).  On the
@@ -96,14 +136,22 @@ from lmpromp_ppl._keys import raw_key
 from lmpromp_ppl.data.core import ModelData
 from lmpromp_ppl.errors import LmprompError
 from lmpromp_ppl.inference.compiled import lookup, remember
+from lmpromp_ppl.inference.warm_start import cavi_start
 from lmpromp_ppl.models.conditionals import draw_integrated_sites
 from lmpromp_ppl.models.hyper import Hyperparameters
 from lmpromp_ppl.models.registry import model_function, resolve_collapse
 
 __all__ = [
+    "INIT_CHOICES",
     "NutsResult",
     "fit_nuts",
 ]
+
+#: Values of ``init``: ``"uniform"`` (numpyro's ``init_to_uniform`` for every site
+#: not in ``init_values``; the default) and ``"cavi"`` (one start per chain drawn
+#: from the CAVI posterior, for the models of
+#: :data:`~lmpromp_ppl.inference.warm_start.WARM_START_MODELS`).
+INIT_CHOICES = ("uniform", "cavi")
 
 _STAT_NAMES = ("diverging", "tree_depth", "step_size", "accept_prob", "energy", "num_steps")
 
@@ -172,6 +220,7 @@ class _Config(NamedTuple):
     max_tree_depth: int
     dense_mass: bool
     chain_method: str
+    per_chain_init: bool
 
 
 def _build_program(config: _Config) -> Callable:
@@ -180,11 +229,23 @@ def _build_program(config: _Config) -> Callable:
 
     def program(key, data, fixed, init_values):
         key_init, key_chains, key_cond = jax.random.split(key, 3)
-        strategy = init_to_value(values=init_values) if init_values else init_to_uniform
-        info = initialize_model(
-            jax.random.split(key_init, config.num_chains), model, init_strategy=strategy,
-            dynamic_args=True, model_args=(data, fixed),
-        )
+        init_keys = jax.random.split(key_init, config.num_chains)
+        if config.per_chain_init:
+            # one start per chain (e.g. draws from a variational posterior)
+            infos = [
+                initialize_model(
+                    init_keys[c], model, init_strategy=init_to_value(values={k: v[c] for k, v in init_values.items()}),
+                    dynamic_args=True, model_args=(data, fixed),
+                )
+                for c in range(config.num_chains)
+            ]
+            stacked = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *[i.param_info for i in infos])
+            info = infos[0]._replace(param_info=stacked)
+        else:
+            strategy = init_to_value(values=init_values) if init_values else init_to_uniform
+            info = initialize_model(
+                init_keys, model, init_strategy=strategy, dynamic_args=True, model_args=(data, fixed),
+            )
         init_kernel, sample_kernel = hmc(potential_fn_gen=info.potential_fn, algo="NUTS")
         postprocess = info.postprocess_fn(data, fixed)
 
@@ -235,6 +296,23 @@ def _build_program(config: _Config) -> Callable:
     return program
 
 
+def _decentre(init_values: dict, noncentered: tuple[str, ...], fixed: dict) -> dict:
+    """Starts of non-centred sites on the sampled scale: :math:`\\tilde M = M \\lambda^{1/2}` column-wise.
+
+    ``LocScaleReparam(centered=0)`` samples ``M_decentered`` and makes ``M`` deterministic,
+    so a start given for ``M`` has to be given for ``M_decentered``.
+    """
+    values = dict(init_values)
+    if "M" in noncentered and "M" in values:
+        lam = values.get("lam", fixed.get("lam"))
+        if lam is None:
+            raise LmprompError("init_values['M'] of a non-centred M needs init_values['lam'] (or a fixed lam)")
+        values["M_decentered"] = values.pop("M") * jnp.sqrt(lam)[..., None, :]
+    if "w" in noncentered and "w" in values:
+        raise LmprompError("init_values['w'] needs noncentered=False in the full model")
+    return values
+
+
 def _check_positive_int(name: str, value, minimum: int = 1) -> int:
     if isinstance(value, bool) or int(value) != value or value < minimum:
         raise LmprompError(f"{name} must be an integer >= {minimum}, got {value!r}")
@@ -259,6 +337,7 @@ def fit_nuts(
     progress: bool = False,
     init_values: Mapping[str, Any] | None = None,
     fixed: Mapping[str, Any] | None = None,
+    init: str = "uniform",
 ) -> NutsResult:
     r"""Sample the posterior of a declared model with NUTS.
 
@@ -271,7 +350,8 @@ def fit_nuts(
     collapsed : ``"auto"`` (default: ``"wh"``, or ``"w"`` for the ProMP),
         ``"w"`` (w integrated out, then drawn from :math:`p(\mathbf w | \theta,
         \mathbf y)`), ``"wh"`` (w and h integrated out, then drawn from
-        :math:`p(\mathbf w, \mathbf h | \theta, \mathbf y)`), or ``"none"``
+        :math:`p(\mathbf w, \mathbf h | \theta, \mathbf y)`), ``"whb"`` (b too,
+        drawn first from :math:`p(\mathbf b | \theta, \mathbf y)`) or ``"none"``
         (the full model); see :data:`lmpromp_ppl.models.registry.COLLAPSE_CHOICES`
     noncentered : sample ``M`` (and ``w`` in the full model) non-centred
     num_chains, num_warmup, num_samples : chains, warm-up and kept draws per chain
@@ -282,11 +362,19 @@ def fit_nuts(
     chain_method : ``"sequential"`` or ``"vectorized"`` (see the module docstring)
     progress : accepted for interface symmetry; the run is one compiled program
         without a progress bar
-    init_values : initial values (constrained) for some sampled sites, the same
-        for every chain; the other sites start uniformly in (-2, 2) on the
-        unconstrained scale
+    init_values : initial values (constrained) for some sampled sites, either
+        one value per site (the same start for every chain) or, with a leading
+        axis of length ``num_chains`` on every site, one start per chain (e.g.
+        draws from CAVI's posterior, :func:`lmpromp_ppl.inference.warm_start.cavi_start`);
+        the other sites start uniformly in (-2, 2) on the unconstrained scale.
+        A start for a non-centred ``M`` needs ``lam`` too
     fixed : values at which some latent sites are held (the model is
         conditioned on them); they are left out of ``samples``
+    init : where the chains start (:data:`INIT_CHOICES`); ``"cavi"`` draws one
+        start per chain from the CAVI posterior of the same model and
+        hyperparameters (:func:`lmpromp_ppl.inference.warm_start.cavi_start`),
+        fitted with a key folded from ``key``; ``init_values`` given as well
+        override the drawn starts
 
     Returns
     -------
@@ -300,6 +388,8 @@ def fit_nuts(
     max_tree_depth = _check_positive_int("max_tree_depth", max_tree_depth)
     if not 0.0 < float(target_accept) < 1.0:
         raise LmprompError(f"target_accept must lie in (0, 1), got {target_accept!r}")
+    if init not in INIT_CHOICES:
+        raise LmprompError(f"init must be one of {list(INIT_CHOICES)}, got {init!r}")
     if chain_method not in ("sequential", "vectorized"):
         raise LmprompError(f"chain_method must be 'sequential' or 'vectorized', got {chain_method!r}")
     if not isinstance(hyper, Hyperparameters):
@@ -311,20 +401,35 @@ def fit_nuts(
     # here with their own message, not inside tracing
     trace = handlers.trace(handlers.seed(model_function(model_name, collapse), 0)).get_trace(data, hyper)
     latent = {n for n, s in trace.items() if s["type"] == "sample" and not s["is_observed"]}
+    start_info = None
+    if init == "cavi":
+        starts, start_info = cavi_start(
+            model_name, data, hyper, jax.random.fold_in(raw_key(key), 7), num_chains,
+            sites=tuple(sorted(latent - set(fixed))),
+        )
+        given = {k: jnp.broadcast_to(v, (num_chains,) + trace[k]["value"].shape)
+                 if k in trace and v.shape == trace[k]["value"].shape else v for k, v in init_values.items()}
+        init_values = {**{k: jnp.asarray(v) for k, v in starts.items()}, **given}
+    per_chain = bool(init_values) and all(
+        name in trace and v.shape == (num_chains,) + trace[name]["value"].shape for name, v in init_values.items()
+    )
     for what, values in (("fixed", fixed), ("init_values", init_values)):
         unknown = set(values) - latent
         if unknown:
             raise LmprompError(f"{what} names unknown sites {sorted(unknown)}; latent sites: {sorted(latent)}")
         for name, value in values.items():
-            if value.shape != trace[name]["value"].shape:
+            expected = trace[name]["value"].shape
+            if value.shape != expected and not (what == "init_values" and per_chain):
                 raise LmprompError(
-                    f"{what}[{name!r}] has shape {value.shape}, expected {trace[name]['value'].shape}"
+                    f"{what}[{name!r}] has shape {value.shape}, expected {expected}"
+                    + (f" (or {(num_chains,) + expected}, one per chain)" if what == "init_values" else "")
                 )
+    noncentered_sites = _noncentered_sites(model_name, collapse, tuple(sorted(fixed))) if noncentered else ()
+    init_values = _decentre(init_values, noncentered_sites, fixed)
     config = _Config(
-        model_name, collapse, hyper,
-        _noncentered_sites(model_name, collapse, tuple(sorted(fixed))) if noncentered else (),
+        model_name, collapse, hyper, noncentered_sites,
         num_chains, num_warmup, num_samples, float(target_accept), max_tree_depth,
-        bool(dense_mass), chain_method,
+        bool(dense_mass), chain_method, per_chain,
     )
     args = (raw_key(key), data, fixed, init_values)
     cache_key = (config, jax.tree_util.tree_structure(args),
@@ -343,8 +448,10 @@ def fit_nuts(
         "num_chains": num_chains, "num_warmup": num_warmup, "num_samples": num_samples,
         "target_accept": float(target_accept), "max_tree_depth": max_tree_depth,
         "dense_mass": bool(dense_mass), "chain_method": chain_method,
-        "fixed": sorted(fixed),
+        "fixed": sorted(fixed), "init": init,
     }
+    if start_info is not None:
+        options["init_seconds"] = start_info["seconds"]
     return NutsResult(
         samples={k: np.asarray(v) for k, v in samples.items()},
         sample_stats={k: np.asarray(stats[k]) for k in _STAT_NAMES},

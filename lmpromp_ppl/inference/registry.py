@@ -45,7 +45,7 @@ ENGINE_MODELS = {
 ENGINE_OPTIONS = {
     "cavi": frozenset({"tol", "max_iter", "num_restarts", "family", "search", "max_moves"}),
     "nuts": frozenset({"num_chains", "num_warmup", "num_samples", "target_accept", "max_tree_depth",
-                       "collapsed", "dense_mass"}),
+                       "collapsed", "dense_mass", "init"}),
     "svi": frozenset({"num_steps", "learning_rate", "learning_rate_decay", "num_particles", "rank", "stop_tol",
                       "window", "plateau_reductions", "plateau_factor"}),
 }

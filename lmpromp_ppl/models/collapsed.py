@@ -22,6 +22,9 @@ dense :math:`S \times S` covariance:
   ``cov_factor`` :math:`\alpha^{-1/2}\Psi_i` (rank d);
 * LMProMP, ``h`` collapsed: loc :math:`\Psi_i\mathbf b`, ``cov_factor``
   :math:`\Psi_i[\alpha^{-1/2}\mathbf I_d, \gamma^{-1/2}\mathbf M]` (rank d + V);
+* LMProMP, ``h`` and the offset ``b`` collapsed (:func:`lmpromp_offset_collapsed_model`):
+  ``b`` couples all demonstrations, so the marginal is a factor computed in
+  weight space (:func:`lmpromp_ppl.models.conditionals.offset_marginal`, :math:`O(Ld^3)`);
 * mixture (eq. 4.8): the same per component k with :math:`\mathbf b_k, \mathbf M_k, \alpha_k`,
   ``z`` summed out (:class:`~numpyro.distributions.MixtureSameFamily`);
 * ProMP (eq. 3.1): loc :math:`\Psi_i\boldsymbol\mu_w`, ``cov_factor``
@@ -49,6 +52,7 @@ from jax import Array
 
 from lmpromp_ppl.data.core import ModelData
 from lmpromp_ppl.errors import LmprompError
+from lmpromp_ppl.models.conditionals import data_statistics, offset_marginal
 from lmpromp_ppl.models.hyper import Hyperparameters
 from lmpromp_ppl.models.lmpromp import MaskedObservations, global_priors, observation_precision, masked_observations
 from lmpromp_ppl.models.mixture import component_priors
@@ -56,6 +60,7 @@ from lmpromp_ppl.models.promp import promp_weight_prior
 
 __all__ = [
     "lmpromp_collapsed_model",
+    "lmpromp_offset_collapsed_model",
     "mixture_collapsed_model",
     "promp_collapsed_model",
 ]
@@ -120,6 +125,30 @@ def lmpromp_collapsed_model(
             loc, cov_factor, _cov_diag(beta, (num_demos, size))
         )
         _observe_collapsed(prepared, y_dist, beta, observed)
+
+
+def lmpromp_offset_collapsed_model(data: ModelData, hyper: Hyperparameters, observed: bool = True) -> None:
+    r"""The LMProMP (eq. 4.1) with ``w``, ``h`` and the offset ``b`` integrated out.
+
+    :math:`p(\mathbf y | \mathbf M, \alpha, \beta) = \int \mathcal N(\mathbf b | \mathbf 0, \lambda_0^{-1}\mathbf I)
+    \prod_i \mathcal N(\mathbf y_i | \Psi_i\mathbf b, \beta^{-1}\mathbf I + \Psi_i\mathbf C\Psi_i^T)\,d\mathbf b`,
+    :math:`\mathbf C = \alpha^{-1}\mathbf I + \gamma^{-1}\mathbf M\mathbf M^T`, over the observed
+    entries only (:func:`~lmpromp_ppl.models.conditionals.offset_marginal`).  Sites: ``lam``,
+    ``M``, ``alpha``, ``beta`` (when learned) and the factor ``y``.  The offset is a
+    posterior-correlated direction of every other site (its spread is :math:`\mathbf C / L`),
+    so sampling it costs NUTS most of its tree depth; integrated out, it is drawn afterwards
+    from :math:`p(\mathbf b | \mathbf M, \alpha, \beta, \mathbf y)`.  With ``observed=False``
+    (simulation) this is :func:`lmpromp_collapsed_model` with ``h`` collapsed, which samples ``b``.
+    """
+    if not observed:
+        lmpromp_collapsed_model(data, hyper, collapse_h=True, observed=False)
+        return
+    prepared = masked_observations(data)
+    num_weights = prepared.psi.shape[-1]
+    hyper.validate_for(num_weights)
+    _, _, M, alpha, beta = global_priors(hyper, num_weights, offset=False)
+    log_marginal, _, _ = offset_marginal(data_statistics(prepared), M, alpha, beta, hyper.lambda0, hyper.gamma)
+    numpyro.factor("y", log_marginal)
 
 
 def mixture_collapsed_model(

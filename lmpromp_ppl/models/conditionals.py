@@ -23,7 +23,15 @@ from lmpromp_ppl.errors import LmprompError
 from lmpromp_ppl.models.hyper import Hyperparameters
 from lmpromp_ppl.models.lmpromp import MaskedObservations, masked_observations
 
-__all__ = ["gaussian_conditional", "sample_w_given_theta", "sample_h_given_theta", "draw_integrated_sites"]
+__all__ = [
+    "gaussian_conditional",
+    "data_statistics",
+    "offset_marginal",
+    "sample_b_given_theta",
+    "sample_w_given_theta",
+    "sample_h_given_theta",
+    "draw_integrated_sites",
+]
 
 _LOG_2PI = math.log(2.0 * math.pi)
 
@@ -182,7 +190,7 @@ def _params_for_draws(
     return sample_shape, flat
 
 
-def _data_statistics(prepared: MaskedObservations) -> tuple[Array, Array, Array, Array]:
+def data_statistics(prepared: MaskedObservations) -> tuple[Array, Array, Array, Array]:
     """Per demonstration: Psi^T Psi (L, d, d), Psi^T y (L, d), y^T y (L,), count (L,)."""
     psi, y = prepared.psi, prepared.y
     return (
@@ -191,6 +199,112 @@ def _data_statistics(prepared: MaskedObservations) -> tuple[Array, Array, Array,
         jnp.sum(y**2, axis=-1),
         jnp.sum(prepared.observed, axis=-1).astype(y.dtype),
     )
+
+
+def offset_marginal(
+    stats: tuple[Array, Array, Array, Array], M: Array, alpha: Array, beta: Array, lambda0: float, gamma: float
+) -> tuple[Array, Array, Array]:
+    r"""The LMProMP with ``w``, ``h`` and ``b`` integrated out: :math:`p(\mathbf y | \mathbf M, \alpha, \beta)` and :math:`p(\mathbf b | \cdot)`.
+
+    With :math:`\mathbf C = \alpha^{-1}\mathbf I + \gamma^{-1}\mathbf M\mathbf M^T`,
+    :math:`\mathbf A = \mathbf C^{-1}` (:func:`_woodbury_precision`) and, per demonstration,
+    :math:`\mathbf K_i = \beta^{-1}\mathbf I + \Psi_i\mathbf C\Psi_i^T`, the weights
+    :math:`\mathbf w_i \sim \mathcal N(\mathbf b, \mathbf C)` give
+    :math:`\mathbf y_i | \mathbf b \sim \mathcal N(\Psi_i\mathbf b, \mathbf K_i)`, and with
+    :math:`\mathbf b \sim \mathcal N(\mathbf 0, \lambda_0^{-1}\mathbf I)`
+
+    .. math::
+
+        \log p(\mathbf y | \mathbf M, \alpha, \beta) = \sum_i \log\mathcal N(\mathbf y_i | \mathbf 0, \mathbf K_i)
+        + \tfrac d2\log\lambda_0 - \tfrac12\log|\mathbf P_b| + \tfrac12\mathbf g^T\mathbf P_b^{-1}\mathbf g,
+
+    .. math::
+
+        \mathbf P_b = \lambda_0\mathbf I + \sum_i\Psi_i^T\mathbf K_i^{-1}\Psi_i, \quad
+        \mathbf g = \sum_i\Psi_i^T\mathbf K_i^{-1}\mathbf y_i, \quad
+        \mathbf b | \mathbf y, \mathbf M, \alpha, \beta \sim \mathcal N(\mathbf P_b^{-1}\mathbf g, \mathbf P_b^{-1}).
+
+    Both are computed in weight space, without an :math:`S \times S` matrix: with
+    :math:`\mathbf P_i = \mathbf A + \beta\Psi_i^T\Psi_i` and the posterior mean
+    :math:`\boldsymbol\mu_i = \mathbf P_i^{-1}\beta\Psi_i^T\mathbf y_i` of
+    :math:`\mathbf w_i` under the prior :math:`\mathcal N(\mathbf 0, \mathbf C)`,
+    :math:`\Psi_i^T\mathbf K_i^{-1}\Psi_i = \mathbf A - \mathbf A\mathbf P_i^{-1}\mathbf A`
+    and :math:`\Psi_i^T\mathbf K_i^{-1}\mathbf y_i = \mathbf A\boldsymbol\mu_i` (Woodbury,
+    no cancellation between terms of the size of :math:`\beta\Psi_i^T\Psi_i`).  Cost
+    :math:`O(L d^3)` per evaluation.
+
+    Parameters
+    ----------
+    stats : :func:`data_statistics` of the masked observations
+    M : (d, V); alpha, beta : scalars; lambda0, gamma : prior precisions of ``b`` and ``h``
+
+    Returns
+    -------
+    log_marginal : scalar
+    mean : (d,) mean of :math:`p(\mathbf b | \cdot)`
+    chol : (d, d) lower Cholesky factor of its precision :math:`\mathbf P_b`
+    """
+    gram, cross, sq, count = stats
+    num_weights = cross.shape[-1]
+    A = _woodbury_precision(alpha, M, gamma)
+    # per demonstration: P_i = A + beta G_i, mu_i = P_i^{-1} beta c_i and the evidence
+    # log N(y_i | 0, K_i) (as gaussian_conditional, with log|A| computed once)
+    chol_w = jnp.linalg.cholesky(A + beta * gram)
+    half_c = solve_triangular(chol_w, beta * cross[..., None], lower=True)
+    mean_w = solve_triangular(jnp.swapaxes(chol_w, -1, -2), half_c, lower=False)[..., 0]
+    logdet_A = 2.0 * jnp.sum(jnp.log(jnp.diagonal(jnp.linalg.cholesky(A))))
+    logdet_P = 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol_w, axis1=-2, axis2=-1)), axis=-1)
+    log_evidence = (
+        -0.5 * count * _LOG_2PI + 0.5 * count * jnp.log(beta) + 0.5 * (logdet_A - logdet_P)
+        - 0.5 * (beta * sq - jnp.sum(half_c[..., 0] ** 2, axis=-1))
+    )
+    # P_i^{-1} A for every demonstration, from the Cholesky factors of P_i
+    half = solve_triangular(chol_w, jnp.broadcast_to(A, chol_w.shape), lower=True)
+    P_inv_A = solve_triangular(jnp.swapaxes(chol_w, -1, -2), half, lower=False)
+    precision = lambda0 * jnp.eye(num_weights) + mean_w.shape[0] * A - jnp.einsum("de,lef->df", A, P_inv_A)
+    precision = 0.5 * (precision + precision.T)
+    g = jnp.einsum("de,le->d", A, mean_w)
+    chol = jnp.linalg.cholesky(precision)
+    half_g = solve_triangular(chol, g[:, None], lower=True)[:, 0]
+    mean = solve_triangular(chol.T, half_g[:, None], lower=False)[:, 0]
+    log_marginal = (
+        jnp.sum(log_evidence)
+        + 0.5 * num_weights * jnp.log(lambda0)
+        - jnp.sum(jnp.log(jnp.diagonal(chol)))
+        + 0.5 * jnp.sum(half_g**2)
+    )
+    return log_marginal, mean, chol
+
+
+def _b_one_draw(key: Array, theta: dict, stats, hyper: Hyperparameters) -> Array:
+    """``b`` (d,) drawn from p(b | M, alpha, beta, y) for one parameter draw ``theta``."""
+    beta = theta.get("beta", hyper.beta)
+    _, mean, chol = offset_marginal(stats, theta["M"], theta["alpha"], beta, hyper.lambda0, hyper.gamma)
+    return _draw(key, mean, chol)
+
+
+def sample_b_given_theta(
+    key: Array, data: ModelData, hyper: Hyperparameters, params: Mapping[str, Array]
+) -> Array:
+    r"""Draw ``b`` from :math:`p(\mathbf b | \mathbf M, \alpha, \beta, \mathbf y)` (:func:`offset_marginal`), one per draw.
+
+    ``params`` holds ``M`` (..., d, V), ``alpha`` (...) and ``beta`` (...) when
+    learned; returns (..., d).
+    """
+    prepared = masked_observations(data)
+    num_weights = prepared.psi.shape[-1]
+    M = jnp.asarray(params["M"])
+    sample_shape = M.shape[:-2]
+    flat = {"M": M.reshape((-1,) + M.shape[-2:]),
+            "alpha": jnp.asarray(params["alpha"]).reshape(-1)}
+    if "beta" in params:
+        flat["beta"] = jnp.asarray(params["beta"]).reshape(-1)
+    elif hyper.learn_beta:
+        raise LmprompError("hyper.learn_beta is set but params has no 'beta'")
+    if M.shape[-2] != num_weights:
+        raise LmprompError(f"params['M'] has {M.shape[-2]} rows, the data have {num_weights} weights")
+    stats = data_statistics(prepared)
+    return _map_draws(lambda k, theta: _b_one_draw(k, theta, stats, hyper), key, flat, sample_shape)
 
 
 def _w_one_draw(key: Array, theta: dict, stats, hyper: Hyperparameters, model: str) -> Array:
@@ -290,7 +404,7 @@ def sample_w_given_theta(
     num_demos, _, num_weights = prepared.psi.shape
     model = _infer_model(params) if model is None else model
     sample_shape, flat = _params_for_draws(params, hyper, model, num_weights, num_demos)
-    stats = _data_statistics(prepared)
+    stats = data_statistics(prepared)
     return _map_draws(
         lambda k, theta: _w_one_draw(k, theta, stats, hyper, model), key, flat, sample_shape
     )
@@ -389,7 +503,7 @@ def draw_integrated_sites(model_name: str, collapse: str, key, data: ModelData,
 
     Parameters
     ----------
-    model_name, collapse : model and collapse specification (``"w"`` or ``"wh"``)
+    model_name, collapse : model and collapse specification (``"w"``, ``"wh"`` or ``"whb"``)
     key : PRNG key
     data : model inputs
     hyper : hyperparameters
@@ -398,13 +512,18 @@ def draw_integrated_sites(model_name: str, collapse: str, key, data: ModelData,
     Returns
     -------
     dict with ``w`` (N, L, d) drawn from :math:`p(\mathbf w_i | \theta, \mathbf y_i)`,
-    and, when ``collapse == "wh"``, ``h`` (N, L, [K,] V) drawn from
+    and, when ``collapse`` is ``"wh"`` or ``"whb"``, ``h`` (N, L, [K,] V) drawn from
     :math:`p(\mathbf h_i | \mathbf w_i, \theta)`, so that ``(w, h)`` is a draw of
-    their joint conditional.
+    their joint conditional; with ``"whb"``, ``b`` (N, d) is drawn first from
+    :math:`p(\mathbf b | \mathbf M, \alpha, \beta, \mathbf y)` and the others given it.
     """
     key_w, key_h = jax.random.split(key)
+    out = {}
+    if collapse == "whb":
+        out["b"] = sample_b_given_theta(jax.random.fold_in(key, 2), data, hyper, params)
+        params = dict(params, b=out["b"])
     w = sample_w_given_theta(key_w, data, hyper, params, model=model_name)
-    out = {"w": w}
-    if collapse == "wh":
+    out["w"] = w
+    if collapse in ("wh", "whb"):
         out["h"] = sample_h_given_theta(key_h, hyper, dict(params, w=w), model=model_name)
     return out

@@ -148,17 +148,20 @@ def lmpromp_model(data: ModelData, hyper: Hyperparameters, observed: bool = True
         observe_y(prepared, w, beta, observed)
 
 
-def global_priors(hyper: Hyperparameters, num_weights: int):
+def global_priors(hyper: Hyperparameters, num_weights: int, offset: bool = True):
     r"""The global sites of eq. 4.1 and Sec. 4.1, shared by the full and collapsed forms.
 
     :math:`b \sim N(0, \lambda_0^{-1} I_d)`, :math:`\lambda_v \sim \Gamma(c_0, d_0)`,
     column :math:`m_v \sim N(0, \lambda_v^{-1} I_d)`, :math:`\alpha \sim \Gamma(a_0, b_0)`,
-    and :math:`\beta` (sampled only when learned).  Returns ``(b, lam, M, alpha, beta)``.
+    and :math:`\beta` (sampled only when learned).  Returns ``(b, lam, M, alpha, beta)``;
+    without ``offset`` the site ``b`` is left out (integrated out by the caller) and ``b`` is None.
     """
     num_latent = hyper.latent_dim
-    b = numpyro.sample(
-        "b", dist.Normal(0.0, hyper.lambda0**-0.5).expand([num_weights]).to_event(1)
-    )
+    b = None
+    if offset:
+        b = numpyro.sample(
+            "b", dist.Normal(0.0, hyper.lambda0**-0.5).expand([num_weights]).to_event(1)
+        )
     lam = numpyro.sample("lam", dist.Gamma(hyper.c0, hyper.d0).expand([num_latent]).to_event(1))
     # column v of M has precision lam[v]
     M = numpyro.sample(

@@ -2,9 +2,12 @@
 
 Every engine finds its model here.  ``collapsed`` has one spelling per
 choice: ``"none"`` (the full model), ``"w"`` (weights integrated out), ``"wh"``
-(weights and control variables integrated out) and ``"auto"`` (the measured
-reliable choice for NUTS: ``"wh"`` for the LMProMP and the mixture, ``"w"`` for
-the ProMP, which has no ``h``).
+(weights and control variables integrated out), ``"whb"`` (the LMProMP with the
+offset ``b`` integrated out as well; not for the mixture, whose offsets are
+tied to the summed-out assignments) and ``"auto"`` (the measured reliable
+choice for NUTS: ``"wh"`` for the LMProMP and the mixture, ``"w"`` for the
+ProMP, which has no ``h``; :mod:`lmpromp_ppl.inference.nuts` gives the
+measurements).
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ from typing import Callable
 from lmpromp_ppl.errors import LmprompError
 from lmpromp_ppl.models.collapsed import (
     lmpromp_collapsed_model,
+    lmpromp_offset_collapsed_model,
     mixture_collapsed_model,
     promp_collapsed_model,
 )
@@ -28,7 +32,7 @@ __all__ = ["MODEL_NAMES", "COLLAPSE_CHOICES", "check_model", "resolve_collapse",
 #: The models of docs/cli.md.
 MODEL_NAMES = ("promp", "lmpromp", "mixture")
 #: The values of ``collapsed``.
-COLLAPSE_CHOICES = ("auto", "none", "w", "wh")
+COLLAPSE_CHOICES = ("auto", "none", "w", "wh", "whb")
 
 _ALIASES = {"lmpromp_mixture": "mixture"}
 _FULL = {"promp": promp_model, "lmpromp": lmpromp_model, "mixture": mixture_model}
@@ -48,14 +52,16 @@ def check_model(name: str) -> str:
 
 
 def resolve_collapse(model_name: str, collapsed: str) -> str:
-    """``collapsed`` resolved for ``model_name``: ``"none"``, ``"w"`` or ``"wh"`` (``"auto"`` chosen)."""
+    """``collapsed`` resolved for ``model_name``: ``"none"``, ``"w"``, ``"wh"`` or ``"whb"`` (``"auto"`` chosen)."""
     model_name = check_model(model_name)
     if collapsed not in COLLAPSE_CHOICES:
         raise LmprompError(f"collapsed must be one of {list(COLLAPSE_CHOICES)}, got {collapsed!r}")
     if collapsed == "auto":
         return "w" if model_name == "promp" else "wh"
-    if collapsed == "wh" and model_name == "promp":
+    if collapsed in ("wh", "whb") and model_name == "promp":
         raise LmprompError("the ProMP model has no control variables h; use collapsed='w'")
+    if collapsed == "whb" and model_name == "mixture":
+        raise LmprompError("the mixture's offsets b_k cannot be integrated out with the assignments; use collapsed='wh'")
     return collapsed
 
 
@@ -73,6 +79,8 @@ def model_function(model_name: str, collapsed: str) -> Callable[..., None]:
         return _FULL[model_name]
     if model_name == "promp":
         return promp_collapsed_model
+    if collapse == "whb":
+        return lmpromp_offset_collapsed_model
     return partial(_COLLAPSED[model_name], collapse_h=collapse == "wh")
 
 
