@@ -86,9 +86,12 @@ run varies by a factor of about two between keys.  What limits ``alpha`` and
 (both explain the demonstrations' spread) through ``lam``: on GShape, with
 ``lam`` held at the CAVI posterior mean (``"whb"``, centred M, key 0), R-hat is
 1.002-1.005, bulk ESS 473-782 and tail ESS 499-737 on every quantity.
-Integrating the ARD precisions out as well (a multivariate Student-t prior on
-each column of M) is the next candidate; a switched-off column then has the
-t's spike at 0, the funnel the non-centred M avoids today.  A dense mass matrix
+Integrating the ARD precisions out as well (``"whb"`` with a multivariate
+Student-t prior on each column of M, sampled centred; an experiment, not an
+option) is worse: R-hat 1.03-1.04 and bulk ESS 54-74 on the eigenvalues of
+:math:`\mathbf M\mathbf M^T` (keys 0 and 1), since the switched-off column then
+sits in the t's spike at 0, the funnel the non-centred M avoids.  A
+parametrisation of the (alpha, lam) trade-off itself is still open.  A dense mass matrix
 (``dense_mass=True``) did not finish within 200 s on GShape (warm-up at the
 maximum tree depth), and chains in lock-step (``chain_method="vectorized"``)
 took 140-240 s against 60-67 s, so the mass matrix stays diagonal and the
