@@ -44,6 +44,7 @@ def gaussian_conditional(
     noise_precision: Array,
     prior_mean: Array,
     prior_precision: Array,
+    logdet_prior: Array | None = None,
 ) -> tuple[Array, Array, Array]:
     r"""Posterior and evidence of :math:`\mathbf x` in a linear-Gaussian model, from sufficient statistics.
 
@@ -72,6 +73,8 @@ def gaussian_conditional(
     noise_precision : (...,) :math:`\nu`
     prior_mean : (..., p) :math:`\mathbf m`
     prior_precision : (..., p, p) :math:`\mathbf P_0`
+    logdet_prior : :math:`\log|\mathbf P_0|` when the caller has it (one prior
+        shared by a batch needs one factorisation, not one per element)
 
     Returns
     -------
@@ -103,9 +106,10 @@ def gaussian_conditional(
         - 2.0 * jnp.sum(prior_mean * cross, axis=-1)
         + jnp.einsum("...i,...ij,...j->...", prior_mean, gram, prior_mean)
     )
-    logdet_prior = 2.0 * jnp.sum(
-        jnp.log(jnp.diagonal(jnp.linalg.cholesky(prior_precision), axis1=-2, axis2=-1)), axis=-1
-    )
+    if logdet_prior is None:
+        logdet_prior = 2.0 * jnp.sum(
+            jnp.log(jnp.diagonal(jnp.linalg.cholesky(prior_precision), axis1=-2, axis2=-1)), axis=-1
+        )
     logdet_post = 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol, axis1=-2, axis2=-1)), axis=-1)
     log_evidence = (
         -0.5 * count * _LOG_2PI
@@ -247,16 +251,10 @@ def offset_marginal(
     gram, cross, sq, count = stats
     num_weights = cross.shape[-1]
     A = _woodbury_precision(alpha, M, gamma)
-    # per demonstration: P_i = A + beta G_i, mu_i = P_i^{-1} beta c_i and the evidence
-    # log N(y_i | 0, K_i) (as gaussian_conditional, with log|A| computed once)
-    chol_w = jnp.linalg.cholesky(A + beta * gram)
-    half_c = solve_triangular(chol_w, beta * cross[..., None], lower=True)
-    mean_w = solve_triangular(jnp.swapaxes(chol_w, -1, -2), half_c, lower=False)[..., 0]
+    # per demonstration: P_i = A + beta G_i, mu_i = P_i^{-1} beta c_i and log N(y_i | 0, K_i)
     logdet_A = 2.0 * jnp.sum(jnp.log(jnp.diagonal(jnp.linalg.cholesky(A))))
-    logdet_P = 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol_w, axis1=-2, axis2=-1)), axis=-1)
-    log_evidence = (
-        -0.5 * count * _LOG_2PI + 0.5 * count * jnp.log(beta) + 0.5 * (logdet_A - logdet_P)
-        - 0.5 * (beta * sq - jnp.sum(half_c[..., 0] ** 2, axis=-1))
+    mean_w, chol_w, log_evidence = gaussian_conditional(
+        gram, cross, sq, count, beta, jnp.zeros(num_weights), A, logdet_prior=logdet_A
     )
     # P_i^{-1} A for every demonstration, from the Cholesky factors of P_i
     half = solve_triangular(chol_w, jnp.broadcast_to(A, chol_w.shape), lower=True)
