@@ -35,6 +35,7 @@ def _one_error_line(err: str) -> str:
         (["fit", DATASET, "--samples", "-1"], "--samples"),
         (["fit", DATASET, "--samples", "0"], "--samples"),
         (["fit", DATASET, "--max-iter", "0"], "--max-iter"),
+        (["fit", DATASET, "--accelerate", "fast"], "--accelerate"),
         (["fit", DATASET, "--tol", "nan"], "--tol"),
         (["fit", DATASET, "--beta", "0"], "--beta"),
         (["fit", DATASET, "--learning-rate", "-0.1"], "--learning-rate"),

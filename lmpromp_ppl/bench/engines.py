@@ -58,8 +58,7 @@ def bench_cavi(row: RowSpec, data: cavi.CaviData, config: BenchConfig, peak_rate
     # of 5 sweeps first, so that a slow problem is not run for the whole count
     sweeps = int(config.timing_sweeps)
     tol_off = jnp.asarray(-1.0)
-    fixed_args = lambda n: (state0, data, hyper_arr, tol_off, jnp.asarray(n, jnp.int32),  # noqa: E731
-                            jnp.asarray(-jnp.inf))
+    fixed_args = lambda n: (state0, data, hyper_arr, tol_off, jnp.asarray(n, jnp.int32), cavi.fresh())  # noqa: E731
     run_fixed, compile_s = cavi.compiled_iterate(state0, data, hyper_arr, sweeps)
     start = time.perf_counter()
     probe = min(5, sweeps)
@@ -86,18 +85,18 @@ def bench_cavi(row: RowSpec, data: cavi.CaviData, config: BenchConfig, peak_rate
         how = "one compiled while_loop as in cavi.fit"
     else:
         # too slow for max_iter sweeps within the budget: chunks of `sweeps`, stopped by time
-        state, done, fit_s, traces, previous = state0, 0, 0.0, [], jnp.asarray(-jnp.inf)
+        state, done, fit_s, traces, resume = state0, 0, 0.0, [], cavi.fresh()
         tol_arr = jnp.asarray(config.tol, jnp.float64)
         while True:
             limit = min(sweeps, config.max_iter - done)
             start = time.perf_counter()
             result = jax.block_until_ready(
-                run_fixed(state, data, hyper_arr, tol_arr, jnp.asarray(limit, jnp.int32), previous))
+                run_fixed(state, data, hyper_arr, tol_arr, jnp.asarray(limit, jnp.int32), resume))
             fit_s += time.perf_counter() - start
             n = int(result.iterations)
             traces.append(np.asarray(result.elbo_trace[:n]))
             done += n
-            state, previous = result.state, result.elbo_trace[max(n - 1, 0)]
+            state, resume = result.state, result.resume
             if bool(result.converged) or done >= config.max_iter or n == 0 or fit_s >= config.cavi_budget_s:
                 break
         trace = np.concatenate(traces)

@@ -68,6 +68,15 @@ def basis_size(value: str | None):
     return number
 
 
+def acceleration(value: str | None):
+    """``callback=`` of ``--accelerate``: a name of :data:`lmpromp_ppl.inference.cavi.ACCELERATIONS`."""
+    from lmpromp_ppl.inference.cavi.state import ACCELERATIONS
+
+    if value is not None and value not in ACCELERATIONS:
+        raise typer.BadParameter(f"must be one of {', '.join(ACCELERATIONS)}, got {value!r}")
+    return value
+
+
 # --------------------------------------------------------------------------- engine warnings
 @contextmanager
 def caught_convergence_warnings():

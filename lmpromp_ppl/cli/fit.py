@@ -10,7 +10,7 @@ import typer
 from lmpromp_ppl.basis import DEFAULT_NUM_BASIS, DEFAULT_WIDTH
 from lmpromp_ppl.cli import app
 from lmpromp_ppl.cli._common import (
-    SEED_HELP, SEED_MAX, basis_size, caught_convergence_warnings, positive, claim_out_dir,
+    SEED_HELP, SEED_MAX, acceleration, basis_size, caught_convergence_warnings, positive, claim_out_dir,
 )
 
 __all__ = ["convergence_note", "fit_command", "hyper_from_options"]
@@ -86,6 +86,7 @@ def fit_command(
     max_iter: Optional[int] = typer.Option(None, "--max-iter", min=1, help="CAVI: maximum iterations."),
     tol: Optional[float] = typer.Option(None, callback=positive, help="CAVI: relative ELBO tolerance."),
     restarts: Optional[int] = typer.Option(None, min=1, help="CAVI: restarts, best ELBO kept."),
+    accelerate: Optional[str] = typer.Option(None, "--accelerate", callback=acceleration, help="CAVI: scale (default: rescalings, rotation and over-relaxation, each keeping the bound non-decreasing), overrelax, or none (the thesis's plain sweeps)."),
     chains: Optional[int] = typer.Option(None, min=1, help="NUTS: chains."),
     warmup: Optional[int] = typer.Option(None, min=0, help="NUTS: warm-up iterations per chain."),
     samples: Optional[int] = typer.Option(None, min=1, help="NUTS: draws per chain."),
@@ -103,7 +104,7 @@ def fit_command(
 
     hyper = hyper_from_options(preset_name or ("default" if engine == "cavi" else "proper"), latent_dim, components, beta, learn_beta)
     options = {
-        "max_iter": max_iter, "tol": tol, "num_restarts": restarts,
+        "max_iter": max_iter, "tol": tol, "num_restarts": restarts, "accelerate": accelerate,
         "num_chains": chains, "num_warmup": warmup, "num_samples": samples,
         "num_steps": steps, "learning_rate": learning_rate,
     }

@@ -7,6 +7,13 @@ function, the argument tree, the shapes and dtypes of its leaves and the static
 arguments (the CAVI loop, its batched and split-and-merge variants);
 :func:`lookup` and :func:`remember` hold the programs NUTS and SVI build per
 configuration, in the same cache.
+
+Every compiled program keeps its machine code in memory mappings of the
+process (the CAVI loop about 800 of them), and Linux refuses a process more
+than ``vm.max_map_count`` (65530 by default): past that, the next compilation
+crashes the interpreter.  Before each compilation :func:`compiled` therefore
+checks how many mappings the process holds and, above :data:`MAP_FRACTION` of
+the limit, forgets every program (this cache and JAX's), which releases them.
 """
 
 from __future__ import annotations
@@ -18,9 +25,36 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["compiled", "lookup", "remember", "clear"]
+__all__ = ["compiled", "lookup", "remember", "clear", "release_if_needed", "MAP_FRACTION"]
 
 _CACHE: dict = {}
+
+#: Fraction of ``vm.max_map_count`` above which :func:`release_if_needed` forgets every compiled program.
+MAP_FRACTION = 0.6
+
+
+def _map_counts() -> tuple[int, int] | None:
+    """(memory mappings of this process, the system's limit), or None where /proc does not tell."""
+    try:
+        with open("/proc/sys/vm/max_map_count") as f:
+            limit = int(f.read())
+        with open("/proc/self/maps", "rb") as f:
+            return sum(1 for _ in f), limit
+    except (OSError, ValueError):
+        return None
+
+
+def release_if_needed() -> bool:
+    """Forget every compiled program (this cache and JAX's) when the process nears its limit of memory mappings.
+
+    Returns whether it did.  The programs are compiled again when next needed.
+    """
+    counts = _map_counts()
+    if counts is None or counts[0] < MAP_FRACTION * counts[1]:
+        return False
+    clear()
+    jax.clear_caches()
+    return True
 
 
 def compiled(function: Callable, args: tuple, **static: Any) -> tuple[Callable, float]:
@@ -37,6 +71,7 @@ def compiled(function: Callable, args: tuple, **static: Any) -> tuple[Callable, 
     )
     if key in _CACHE:
         return _CACHE[key], 0.0
+    release_if_needed()
     start = time.perf_counter()
     executable = function.lower(*args, **static).compile()
     seconds = time.perf_counter() - start

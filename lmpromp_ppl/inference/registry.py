@@ -43,7 +43,7 @@ ENGINE_MODELS = {
 
 #: Options each engine accepts through ``fit(..., **options)``.
 ENGINE_OPTIONS = {
-    "cavi": frozenset({"tol", "max_iter", "num_restarts", "family", "search", "max_moves"}),
+    "cavi": frozenset({"tol", "max_iter", "num_restarts", "family", "search", "max_moves", "accelerate"}),
     "nuts": frozenset({"num_chains", "num_warmup", "num_samples", "target_accept", "max_tree_depth",
                        "collapsed", "dense_mass", "init"}),
     "svi": frozenset({"num_steps", "learning_rate", "learning_rate_decay", "num_particles", "rank", "stop_tol",

@@ -31,7 +31,7 @@ from lmpromp_ppl.inference.cavi.data import (
 )
 from lmpromp_ppl.inference.cavi.fit import fit
 from lmpromp_ppl.inference.cavi.init import init_mixture_state, init_state, init_state_jax, ridge_weights
-from lmpromp_ppl.inference.cavi.loop import RunResult, compiled_iterate, iterate, run, step
+from lmpromp_ppl.inference.cavi.loop import Resume, RunResult, compiled_iterate, fresh, iterate, run, step, sweep
 from lmpromp_ppl.inference.cavi.posterior import (
     active_components,
     active_latent_dims,
@@ -44,6 +44,7 @@ from lmpromp_ppl.inference.cavi.posterior import (
 from lmpromp_ppl.inference.cavi.restarts import CaviFit
 from lmpromp_ppl.inference.cavi.search import SEARCHES
 from lmpromp_ppl.inference.cavi.state import (
+    ACCELERATIONS,
     FAMILIES,
     CaviHyper,
     CaviInfo,
@@ -72,11 +73,11 @@ from lmpromp_ppl.inference.cavi.updates import (
 
 __all__ = [
     "CaviData", "DemoGrams", "SharedGram", "FullCovariance", "EigenCovariance", "sufficient_statistics",
-    "FAMILIES", "CaviHyper", "hyper_arrays", "CaviState", "CaviInfo", "ExpectedStats", "expected_stats",
+    "FAMILIES", "ACCELERATIONS", "CaviHyper", "hyper_arrays", "CaviState", "CaviInfo", "ExpectedStats", "expected_stats",
     "family_of", "is_mixture", "lift_single_type",
     "update_w", "update_b", "update_M", "update_h", "update_lam", "update_alpha", "update_beta",
     "update_z", "update_pi", "prune", "UPDATES", "updates_for",
-    "elbo", "step", "iterate", "compiled_iterate", "run", "RunResult",
+    "elbo", "sweep", "step", "Resume", "fresh", "iterate", "compiled_iterate", "run", "RunResult",
     "ridge_weights", "init_state", "init_state_jax", "init_mixture_state",
     "fit", "CaviFit", "SEARCHES",
     "sample_q", "log_q", "point_estimate", "w_covariance", "responsibilities", "active_components",

@@ -42,7 +42,7 @@ from lmpromp_ppl.data.core import ModelData
 from lmpromp_ppl.errors import DataError, LmprompError
 from lmpromp_ppl.inference.cavi.data import CaviData, SharedGram, sufficient_statistics
 from lmpromp_ppl.inference.cavi.init import init_state, init_state_jax
-from lmpromp_ppl.inference.cavi.loop import iterate
+from lmpromp_ppl.inference.cavi.loop import fresh, iterate
 from lmpromp_ppl.inference.cavi.posterior import sample_q
 from lmpromp_ppl.inference.cavi.restarts import check_options
 from lmpromp_ppl.inference.cavi.state import CaviHyper, CaviState, hyper_arrays
@@ -78,7 +78,7 @@ class BatchedCaviFit(NamedTuple):
 
 def _iterate_one(state: CaviState, data: CaviData, hyper: CaviHyper, tol: Array, max_iter: Array):
     """Sweep one replicate until its relative ELBO change is below ``tol`` (or NaN, or ``max_iter``)."""
-    result = iterate(state, data, hyper, tol, max_iter, jnp.asarray(-jnp.inf, jnp.float64), 0)
+    result = iterate(state, data, hyper, tol, max_iter, fresh(), 0)
     return result.state, result.iterations, result.elbo, result.converged
 
 

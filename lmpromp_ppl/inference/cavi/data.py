@@ -12,6 +12,13 @@ When every demonstration has the same :math:`\Psi` (:meth:`ModelData.shares_psi`
 covariances are kept in that basis (:class:`EigenCovariance`):
 :math:`\Sigma_{w_i} = U \operatorname{diag}(1/(\beta s + \bar\alpha_i)) U^T`,
 so that a sweep costs :math:`O(L d^2)` instead of :math:`O(L d^3)`.
+
+Every prior on w, b and the rows of M is isotropic, so the model keeps its form
+in the rotated coordinates :math:`U^Tw_i, U^Tb, U^TM`, where the Gram matrix is
+:math:`\operatorname{diag}(s)`.  The loop of sweeps runs there
+(:mod:`.eigenbasis`, with :class:`DiagonalGram` and :class:`DiagonalCovariance`),
+which makes a sweep :math:`O(L d V)` (:math:`O(L d K V)` for the mixture); the
+state is rotated back after the loop, so no rotated quantity leaves it.
 """
 
 from __future__ import annotations
@@ -28,11 +35,14 @@ from lmpromp_ppl.errors import DataError
 __all__ = [
     "DemoGrams",
     "SharedGram",
+    "DiagonalGram",
     "CaviData",
     "sufficient_statistics",
     "check_model_data",
     "FullCovariance",
     "EigenCovariance",
+    "DiagonalCovariance",
+    "Covariance",
     "cov_trace",
     "cov_logdet",
     "cov_matrices",
@@ -61,6 +71,17 @@ class SharedGram(NamedTuple):
     eigvals: Array
 
 
+class DiagonalGram(NamedTuple):
+    """The shared Gram matrix in its own eigenbasis, :math:`\\operatorname{diag}(s)`: the data of the rotated loop.
+
+    Attributes
+    ----------
+    eigvals : (d,) eigenvalues s (clipped at 0)
+    """
+
+    eigvals: Array
+
+
 class CaviData(NamedTuple):
     """Sufficient statistics of the data used by every update.
 
@@ -69,13 +90,14 @@ class CaviData(NamedTuple):
     psi_t_y : (L, d) :math:`\\Psi_i^T y_i` over observed entries
     y_sq : (L,) :math:`y_i^T y_i` over observed entries
     num_obs : (L,) number of observed entries :math:`n_i`
-    gram : :class:`DemoGrams` (general path) or :class:`SharedGram` (fast path)
+    gram : :class:`DemoGrams` (general path), :class:`SharedGram` (fast path) or
+        :class:`DiagonalGram` (the fast path's data rotated into the eigenbasis, inside the loop)
     """
 
     psi_t_y: Array
     y_sq: Array
     num_obs: Array
-    gram: DemoGrams | SharedGram
+    gram: DemoGrams | SharedGram | DiagonalGram
 
 
 def sufficient_statistics(data: ModelData, shared_psi: bool | None = None) -> CaviData:
@@ -151,9 +173,23 @@ class EigenCovariance(NamedTuple):
     variances: Array
 
 
-def cov_trace(cov: FullCovariance | EigenCovariance) -> Array:
+class DiagonalCovariance(NamedTuple):
+    """Weight covariances :math:`\\operatorname{diag}(v_i)` in the rotated coordinates of :class:`DiagonalGram`.
+
+    Attributes
+    ----------
+    variances : (L, d) the variances :math:`v_i`
+    """
+
+    variances: Array
+
+
+Covariance = FullCovariance | EigenCovariance | DiagonalCovariance
+
+
+def cov_trace(cov: Covariance) -> Array:
     """(L,) :math:`\\operatorname{tr}\\Sigma_{w_i}`."""
-    if isinstance(cov, EigenCovariance):
+    if isinstance(cov, (EigenCovariance, DiagonalCovariance)):
         return jnp.sum(cov.variances, axis=-1)
     return jnp.trace(cov.matrices, axis1=-2, axis2=-1)
 
@@ -164,30 +200,36 @@ def logdet_psd(matrices: Array) -> Array:
     return 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol, axis1=-2, axis2=-1)), axis=-1)
 
 
-def cov_logdet(cov: FullCovariance | EigenCovariance) -> Array:
+def cov_logdet(cov: Covariance) -> Array:
     """(L,) :math:`\\log|\\Sigma_{w_i}|`."""
-    if isinstance(cov, EigenCovariance):
+    if isinstance(cov, (EigenCovariance, DiagonalCovariance)):
         return jnp.sum(jnp.log(cov.variances), axis=-1)
     return logdet_psd(cov.matrices)
 
 
-def cov_matrices(cov: FullCovariance | EigenCovariance) -> Array:
+def cov_matrices(cov: Covariance) -> Array:
     """The weight covariances as (..., L, d, d) matrices, whatever the storage."""
+    if isinstance(cov, DiagonalCovariance):
+        return cov.variances[..., :, None] * jnp.eye(cov.variances.shape[-1])
     if isinstance(cov, EigenCovariance):
         return jnp.einsum("...dj,...ij,...ej->...ide", cov.basis, cov.variances, cov.basis)
     return cov.matrices
 
 
-def gram_quadratic(gram: DemoGrams | SharedGram, x: Array) -> Array:
+def gram_quadratic(gram: DemoGrams | SharedGram | DiagonalGram, x: Array) -> Array:
     """:math:`x_i^T \\Psi_i^T\\Psi_i x_i` for (L, d) x."""
+    if isinstance(gram, DiagonalGram):
+        return x**2 @ gram.eigvals
     if isinstance(gram, SharedGram):
         return jnp.sum(gram.eigvals * (x @ gram.basis) ** 2, axis=-1)
     return jnp.einsum("id,ide,ie->i", x, gram.matrices, x)
 
 
-def gram_trace(gram: DemoGrams | SharedGram, cov: FullCovariance | EigenCovariance) -> Array:
+def gram_trace(gram: DemoGrams | SharedGram | DiagonalGram, cov: Covariance) -> Array:
     """:math:`\\operatorname{tr}(\\Psi_i^T\\Psi_i \\Sigma_{w_i})` (same basis on the fast path)."""
-    if isinstance(gram, SharedGram) and isinstance(cov, EigenCovariance):
+    if (isinstance(gram, SharedGram) and isinstance(cov, EigenCovariance)) or (
+        isinstance(gram, DiagonalGram) and isinstance(cov, DiagonalCovariance)
+    ):
         return cov.variances @ gram.eigvals
     if isinstance(gram, DemoGrams) and isinstance(cov, FullCovariance):
         return jnp.einsum("ide,ied->i", gram.matrices, cov.matrices)

@@ -15,7 +15,7 @@ from lmpromp_ppl.inference.cavi.data import check_model_data, sufficient_statist
 from lmpromp_ppl.inference.cavi.init import init_mixture_state, init_state
 from lmpromp_ppl.inference.cavi.restarts import CaviFit, best_of_restarts, check_options
 from lmpromp_ppl.inference.cavi.search import SEARCHES, fit_with_search
-from lmpromp_ppl.inference.cavi.state import check_family, hyper_arrays
+from lmpromp_ppl.inference.cavi.state import ACCELERATIONS, check_family, hyper_arrays
 from lmpromp_ppl.models.hyper import Hyperparameters
 
 __all__ = ["fit"]
@@ -36,6 +36,7 @@ def fit(
     prune_threshold: float | None = None,
     search: str | None = None,
     max_moves: int | None = None,
+    accelerate: str = "scale",
 ) -> CaviFit:
     """Fit the LMProMP (``mixture=False``, Sec. 4.1) or the mixture of LMProMPs (Sec. 4.2) by CAVI.
 
@@ -72,6 +73,13 @@ def fit(
         of demonstrations falls below this (default 0.5; 0 disables removal)
     search : mixture only: ``"split_merge"`` (default) or ``"none"``
     max_moves : mixture only: at most this many accepted moves per start (default 2K)
+    accelerate : the acceleration of the sweeps, each of which keeps the bound
+        non-decreasing (:data:`~lmpromp_ppl.inference.cavi.ACCELERATIONS`):
+        ``"scale"`` (default: after each sweep the bound-maximising rescaling of each
+        latent dimension (:mod:`.transform`) and, for the single type on a shared
+        design, of each eigen-direction of the weights; then an over-relaxed step,
+        kept when it raises the bound, :mod:`.accelerate`), ``"overrelax"`` (the
+        over-relaxed step only) or ``"none"`` (the thesis's plain sweeps)
 
     Returns
     -------
@@ -81,6 +89,8 @@ def fit(
         raise LmprompError(f"hyper must be a Hyperparameters, got {type(hyper).__name__}")
     check_family(family)
     check_options(tol, max_iter, num_restarts)
+    if accelerate not in ACCELERATIONS:
+        raise LmprompError(f"unknown acceleration {accelerate!r}; choose from {list(ACCELERATIONS)}")
     if not mixture:
         given = [name for name, value in (("prune_threshold", prune_threshold), ("search", search),
                                           ("max_moves", max_moves)) if value is not None]
@@ -105,7 +115,7 @@ def fit(
             f"more mixture components (K={hyper.num_components}) than demonstrations (L={data.num_demos})"
         )
     cavi_data = sufficient_statistics(data, shared_psi)
-    hyper_arr = hyper_arrays(hyper, prune_threshold if mixture else 0.0)
+    hyper_arr = hyper_arrays(hyper, prune_threshold if mixture else 0.0, accelerate)
     keys = jax.random.split(key, num_restarts)
     label = "CAVI mixture" if mixture else "CAVI"
     with reporter(progress, int(max_iter) * int(num_restarts), label) as callback:

@@ -15,7 +15,15 @@ from jax import Array
 from jax.scipy.linalg import cho_solve
 from jax.scipy.special import digamma, gammaln
 
-from lmpromp_ppl.inference.cavi.data import CaviData, EigenCovariance, FullCovariance, SharedGram
+from lmpromp_ppl.inference.cavi.data import (
+    CaviData,
+    Covariance,
+    DiagonalCovariance,
+    DiagonalGram,
+    EigenCovariance,
+    FullCovariance,
+    SharedGram,
+)
 
 __all__ = [
     "w_posterior",
@@ -31,17 +39,21 @@ __all__ = [
 
 def w_posterior(
     data: CaviData, beta: Array, prior_precision: Array, prior_linear: Array
-) -> tuple[Array, FullCovariance | EigenCovariance]:
+) -> tuple[Array, Covariance]:
     """q*(w_i) for a Gaussian prior with precision ``prior_precision[i] * I``.
 
     Precision :math:`\\beta\\Psi_i^T\\Psi_i + \\bar\\alpha_i I`; mean
     :math:`\\Sigma_{w_i}(\\beta\\Psi_i^T y_i + \\ell_i)`, where ``prior_linear``
     :math:`\\ell_i` is the prior's precision times its mean.  On the fast path the
     precision is diagonal in the shared eigenbasis for any per-demonstration
-    ``prior_precision`` (mixture: :math:`\\sum_k r_{ik}\\bar\\alpha_k`).
+    ``prior_precision`` (mixture: :math:`\\sum_k r_{ik}\\bar\\alpha_k`); in the rotated
+    coordinates of :class:`~.data.DiagonalGram` it is diagonal, O(L d).
     """
     linear = beta * data.psi_t_y + prior_linear
     gram = data.gram
+    if isinstance(gram, DiagonalGram):
+        variances = 1.0 / (beta * gram.eigvals[None, :] + prior_precision[:, None])
+        return linear * variances, DiagonalCovariance(variances)
     if isinstance(gram, SharedGram):
         variances = 1.0 / (beta * gram.eigvals[None, :] + prior_precision[:, None])
         mean = ((linear @ gram.basis) * variances) @ gram.basis.T

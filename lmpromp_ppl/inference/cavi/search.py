@@ -50,7 +50,7 @@ from sklearn.cluster import KMeans
 from lmpromp_ppl.errors import LmprompError
 from lmpromp_ppl.inference.cavi.data import CaviData
 from lmpromp_ppl.inference.cavi.init import function_space
-from lmpromp_ppl.inference.cavi.loop import iterate, run
+from lmpromp_ppl.inference.cavi.loop import fresh, iterate, run
 from lmpromp_ppl.inference.cavi.posterior import responsibilities
 from lmpromp_ppl.inference.cavi.restarts import CaviFit, best_fit, check_restart_bound
 from lmpromp_ppl.inference.cavi.state import CaviHyper, CaviState, expected_stats
@@ -319,7 +319,7 @@ def run_candidates(
 
     def one(state):
         state = jax.lax.fori_loop(0, partial_sweeps, lambda _, s: _fixed_z_step(s, data, hyper), state)
-        result = iterate(state, data, hyper, tol, limit, jnp.asarray(-jnp.inf), buffer)
+        result = iterate(state, data, hyper, tol, limit, fresh(), buffer)
         return result.state, result.elbo_trace, result.iterations, result.converged
 
     return jax.vmap(one)(states)

@@ -50,7 +50,7 @@ from jax import Array
 from jax.scipy.special import digamma
 
 from lmpromp_ppl.errors import LmprompError
-from lmpromp_ppl.inference.cavi.data import EigenCovariance, FullCovariance, cov_trace
+from lmpromp_ppl.inference.cavi.data import Covariance, cov_trace
 from lmpromp_ppl.models.hyper import Hyperparameters
 
 __all__ = [
@@ -58,6 +58,7 @@ __all__ = [
     "check_family",
     "CaviHyper",
     "hyper_arrays",
+    "ACCELERATIONS",
     "CaviState",
     "CaviInfo",
     "family_of",
@@ -93,6 +94,11 @@ class CaviHyper(NamedTuple):
     prune_threshold : a component is removed when its expected number of
         demonstrations :math:`N_k = \\sum_i r_{ik}` falls below this (an algorithm
         setting, not part of the model; Sec. 4.2.1)
+    transform : 1.0 to follow each sweep by the bound-maximising rescalings of
+        :mod:`.transform`, 0.0 for none (an algorithm setting, an array so that
+        both share compiled code)
+    overrelax : 1.0 to extrapolate along each sweep and keep the extrapolation when
+        its bound is higher (:mod:`.accelerate`), 0.0 for plain sweeps
     """
 
     beta: Array
@@ -106,11 +112,25 @@ class CaviHyper(NamedTuple):
     beta_a0: Array
     beta_b0: Array
     prune_threshold: Array
+    transform: Array
+    overrelax: Array
 
 
-def hyper_arrays(hyper: Hyperparameters, prune_threshold: float = 0.5) -> CaviHyper:
-    """Build :class:`CaviHyper` from a :class:`Hyperparameters`."""
-    values = [getattr(hyper, name) for name in CaviHyper._fields[:-1]] + [prune_threshold]
+#: The accelerations of the sweeps (``cavi.fit(accelerate=...)``): name -> (transform, overrelax) of :class:`CaviHyper`.
+ACCELERATIONS = {"scale": (True, True), "overrelax": (False, True), "none": (False, False)}
+
+
+def hyper_arrays(hyper: Hyperparameters, prune_threshold: float = 0.5, accelerate: str = "scale") -> CaviHyper:
+    """Build :class:`CaviHyper` from a :class:`Hyperparameters` and the algorithm settings.
+
+    ``accelerate`` names the acceleration of the sweeps (:data:`ACCELERATIONS`):
+    ``"scale"`` (default), ``"overrelax"`` or ``"none"`` (the thesis's plain CAVI).
+    """
+    if accelerate not in ACCELERATIONS:
+        raise LmprompError(f"unknown acceleration {accelerate!r}; choose from {list(ACCELERATIONS)}")
+    transform, overrelax = ACCELERATIONS[accelerate]
+    settings = [prune_threshold, float(transform), float(overrelax)]
+    values = [getattr(hyper, name) for name in CaviHyper._fields[: -len(settings)]] + settings
     return CaviHyper(*(jnp.asarray(v, jnp.float64) for v in values))
 
 
@@ -120,7 +140,8 @@ class CaviState(NamedTuple):
     Attributes
     ----------
     w_mean : (L, d) :math:`\\mu_{w_i}`
-    w_cov : :class:`FullCovariance` or :class:`EigenCovariance`, :math:`\\Sigma_{w_i}`
+    w_cov : :class:`~.data.FullCovariance` or :class:`~.data.EigenCovariance` (inside the
+        rotated loop :class:`~.data.DiagonalCovariance`), :math:`\\Sigma_{w_i}`
     h_mean : (L, K, V) :math:`\\mu_{h_{ik}}`
     h_cov : (L, K, V, V) :math:`\\Sigma_{h_{ik}}`
     b_mean : (K, d) :math:`\\mu_{b_k}`
@@ -141,7 +162,7 @@ class CaviState(NamedTuple):
     """
 
     w_mean: Array
-    w_cov: FullCovariance | EigenCovariance
+    w_cov: Covariance
     h_mean: Array
     h_cov: Array
     b_mean: Array
