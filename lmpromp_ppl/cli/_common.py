@@ -70,10 +70,14 @@ def basis_size(value: str | None):
 
 def acceleration(value: str | None):
     """``callback=`` of ``--accelerate``: a name of :data:`lmpromp_ppl.inference.cavi.ACCELERATIONS`."""
-    from lmpromp_ppl.inference.cavi.state import ACCELERATIONS
+    from lmpromp_ppl.errors import LmprompError
+    from lmpromp_ppl.inference.cavi.state import check_acceleration
 
-    if value is not None and value not in ACCELERATIONS:
-        raise typer.BadParameter(f"must be one of {', '.join(ACCELERATIONS)}, got {value!r}")
+    if value is not None:
+        try:
+            check_acceleration(value)
+        except LmprompError as error:
+            raise typer.BadParameter(str(error)) from None
     return value
 
 

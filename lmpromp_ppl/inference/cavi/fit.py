@@ -15,7 +15,7 @@ from lmpromp_ppl.inference.cavi.data import check_model_data, sufficient_statist
 from lmpromp_ppl.inference.cavi.init import init_mixture_state, init_state
 from lmpromp_ppl.inference.cavi.restarts import CaviFit, best_of_restarts, check_options
 from lmpromp_ppl.inference.cavi.search import SEARCHES, fit_with_search
-from lmpromp_ppl.inference.cavi.state import ACCELERATIONS, check_family, hyper_arrays
+from lmpromp_ppl.inference.cavi.state import check_acceleration, check_family, hyper_arrays
 from lmpromp_ppl.models.hyper import Hyperparameters
 
 __all__ = ["fit"]
@@ -89,8 +89,7 @@ def fit(
         raise LmprompError(f"hyper must be a Hyperparameters, got {type(hyper).__name__}")
     check_family(family)
     check_options(tol, max_iter, num_restarts)
-    if accelerate not in ACCELERATIONS:
-        raise LmprompError(f"unknown acceleration {accelerate!r}; choose from {list(ACCELERATIONS)}")
+    check_acceleration(accelerate)
     if not mixture:
         given = [name for name, value in (("prune_threshold", prune_threshold), ("search", search),
                                           ("max_moves", max_moves)) if value is not None]

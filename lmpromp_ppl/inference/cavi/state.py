@@ -59,6 +59,7 @@ __all__ = [
     "CaviHyper",
     "hyper_arrays",
     "ACCELERATIONS",
+    "check_acceleration",
     "CaviState",
     "CaviInfo",
     "family_of",
@@ -120,14 +121,19 @@ class CaviHyper(NamedTuple):
 ACCELERATIONS = {"scale": (True, True), "overrelax": (False, True), "none": (False, False)}
 
 
+def check_acceleration(accelerate: str) -> None:
+    """Refuse an unknown name of :data:`ACCELERATIONS`."""
+    if accelerate not in ACCELERATIONS:
+        raise LmprompError(f"unknown acceleration {accelerate!r}; choose from {list(ACCELERATIONS)}")
+
+
 def hyper_arrays(hyper: Hyperparameters, prune_threshold: float = 0.5, accelerate: str = "scale") -> CaviHyper:
     """Build :class:`CaviHyper` from a :class:`Hyperparameters` and the algorithm settings.
 
     ``accelerate`` names the acceleration of the sweeps (:data:`ACCELERATIONS`):
     ``"scale"`` (default), ``"overrelax"`` or ``"none"`` (the thesis's plain CAVI).
     """
-    if accelerate not in ACCELERATIONS:
-        raise LmprompError(f"unknown acceleration {accelerate!r}; choose from {list(ACCELERATIONS)}")
+    check_acceleration(accelerate)
     transform, overrelax = ACCELERATIONS[accelerate]
     settings = [prune_threshold, float(transform), float(overrelax)]
     values = [getattr(hyper, name) for name in CaviHyper._fields[: -len(settings)]] + settings
