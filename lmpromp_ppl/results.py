@@ -267,6 +267,29 @@ class FitResult:
         self.draws = {k: np.asarray(v)[None] for k, v in raw.items()}
         return self.draws
 
+    def _draws_to_keep(self, num_draws: int, key, max_draw_bytes: float | None) -> tuple[dict, np.ndarray | None]:
+        """The draws a DataTree holds and the kept indices (:func:`kept_draws`).
+
+        A VI result whose ``num_draws`` draws would exceed ``max_draw_bytes`` draws
+        only as many as are kept (independent draws from q, so drawing fewer equals
+        thinning) and caches those, as :meth:`posterior_draws` does: a thousand draws
+        of ``w`` for a thousand demonstrations of 420 weights would take 3.4 GB.
+        """
+        if self.draws is None and self.sampler is not None and max_draw_bytes is not None:
+            import jax
+
+            from lmpromp_ppl._keys import DRAWS, seed_key
+
+            key = seed_key(self.seed, DRAWS) if key is None else key
+            shapes = jax.eval_shape(lambda k: self.sampler(k, 1), key)
+            per_draw = sum(math.prod(v.shape) * np.dtype(v.dtype).itemsize for v in shapes.values())
+            if per_draw * num_draws > max_draw_bytes:
+                count = min(num_draws, max(MIN_SAVED_DRAWS, int(max_draw_bytes // per_draw)))
+                self.draws = {k: np.asarray(v)[None] for k, v in self.sampler(key, count).items()}
+                return self.draws, None
+        draws = self.posterior_draws(num_draws, key)
+        return draws, None if max_draw_bytes is None else kept_draws(draws, max_draw_bytes)
+
     @property
     def elbo(self) -> float | None:
         return self.summary.get("elbo")
@@ -318,8 +341,7 @@ class FitResult:
 
         from lmpromp_ppl._keys import POSTERIOR_PREDICTIVE
 
-        draws = self.posterior_draws(num_draws, key)
-        keep = None if max_draw_bytes is None else kept_draws(draws, max_draw_bytes)
+        draws, keep = self._draws_to_keep(num_draws, key, max_draw_bytes)
         sample_stats = self.sample_stats
         if keep is not None:
             draws = {k: np.asarray(v)[:, keep] for k, v in draws.items()}

@@ -44,7 +44,7 @@ def _data(L=12, J=6, missing=False):
     if missing:  # a missing stretch: the general path (one Gram matrix per demonstration)
         mask = np.asarray(md.mask).copy()
         mask[0, : mask.shape[1] // 3] = 0.0
-        md = md._replace(mask=jnp.asarray(mask))
+        md = md.dense()._replace(mask=jnp.asarray(mask))
     return md
 
 

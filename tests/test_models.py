@@ -49,7 +49,7 @@ def ragged_data(seed: int = 0) -> ModelData:
     times = [np.sort(rng.uniform(0, 1, n)) + np.arange(n) for n in lengths]
     positions = [rng.normal(size=(n, 2)) for n in lengths]
     data = model_data(Demonstrations(times, positions), NUM_BASIS)
-    psi, y, mask = (np.array(a) for a in data)
+    psi, y, mask = (np.array(a) for a in data.dense())
     mask[1, 3] = 0.0
     y[mask == 0] = 1e3
     y[1, 3] = np.nan
@@ -239,7 +239,7 @@ def test_promp_log_density_matches_scipy(data, learn_beta):
 def test_masked_entries_do_not_contribute(data):
     """The same density with the masked entries removed from a demonstration's end."""
     p = draw("lmpromp", HYPER, data, 6)
-    psi, y, mask = (np.array(a) for a in data)
+    psi, y, mask = (np.array(a) for a in data.dense())
     # demonstration 2 without its padding: truncate every demonstration to its own length
     keep = mask[2] == 1
     short = ModelData(jnp.asarray(psi[2:, keep]), jnp.asarray(y[2:, keep]), jnp.ones((1, keep.sum())))
@@ -265,7 +265,7 @@ def test_get_model_registry():
 
 def test_bad_data_is_refused(data):
     p = draw("lmpromp", HYPER, data, 0)
-    psi, y, mask = (np.array(a) for a in data)
+    psi, y, mask = (np.array(a) for a in data.dense())
     y[0, 0] = np.nan
     with pytest.raises(DataError, match="NaN"):
         numpyro_logp(lmpromp_model, ModelData(psi, y, mask), HYPER, p)

@@ -59,7 +59,7 @@ def data() -> ModelData:
         [np.sort(rng.uniform(0, 1, n)) + np.arange(n) for n in lengths],
         [rng.normal(size=(n, 2)) for n in lengths],
     )
-    psi, y, mask = (np.array(a) for a in model_data(demos, 2))
+    psi, y, mask = (np.array(a) for a in model_data(demos, 2).dense())
     mask[1, 3] = 0.0
     y[mask == 0] = 1e3
     y[1, 3] = np.nan

@@ -1,19 +1,17 @@
 """The benchmark's demonstrations (synthetic latent-manifold data, thesis eq. 4.1) and their CAVI statistics.
 
-:func:`shared_cavi_data` is the one place besides :func:`lmpromp_ppl.data.prepare_dataset`
-that turns demonstrations into engine inputs: for rows of a thousand demonstrations it
-builds CAVI's statistics from one shared design matrix without the padded
-(L, S, d) arrays, which would not fit in memory.
+:func:`shared_cavi_data` gives CAVI's statistics of rows whose demonstrations share one
+time grid through the one data path (:func:`lmpromp_ppl.data.core.model_data`, compact
+inputs), with the shared-design fast path required.
 """
 
 from __future__ import annotations
 
-import jax.numpy as jnp
 import numpy as np
 
-from lmpromp_ppl.basis import DEFAULT_WIDTH, design_matrix
+from lmpromp_ppl.basis import DEFAULT_WIDTH
 from lmpromp_ppl.bench.config import RowSpec
-from lmpromp_ppl.data.core import Demonstrations, standardise
+from lmpromp_ppl.data.core import Demonstrations, model_data, standardise
 from lmpromp_ppl.data.synthetic import latent_manifold
 from lmpromp_ppl.errors import DataError
 from lmpromp_ppl.inference import cavi
@@ -45,12 +43,11 @@ def row_demonstrations(row: RowSpec) -> Demonstrations:
 
 
 def shared_cavi_data(demos: Demonstrations, num_basis: int, width: float = DEFAULT_WIDTH) -> cavi.CaviData:
-    """CAVI statistics of demonstrations that share one time grid, without padded arrays.
+    """CAVI statistics of demonstrations that share one time grid (the shared-design fast path).
 
-    Equal to ``cavi.sufficient_statistics(model_data(demos, num_basis, width))`` on
-    the shared-design fast path, but it never builds the (L, S, d) design
-    array (2.8 GB for L = 1000, S = 840, d = 420): :math:`\\Psi^T y_i` is one
-    (L, S) x (S, d) product.
+    :func:`lmpromp_ppl.inference.cavi.sufficient_statistics` of the one data path's
+    compact inputs (:func:`~lmpromp_ppl.data.core.model_data`), which never build the
+    dense (L, S, d) design array (2.8 GB for L = 1000, S = 840, d = 420).
 
     Raises
     ------
@@ -61,14 +58,4 @@ def shared_cavi_data(demos: Demonstrations, num_basis: int, width: float = DEFAU
     first = phases[0]
     if any(p.shape != first.shape or not np.array_equal(p, first) for p in phases):
         raise DataError("shared_cavi_data needs demonstrations that share one time grid")
-    psi = np.asarray(design_matrix(first, demos.num_dofs, num_basis, width))
-    y = np.stack([np.asarray(p, np.float64).reshape(-1) for p in demos.positions])
-    if not np.all(np.isfinite(y)):
-        raise DataError("shared_cavi_data needs complete demonstrations (no NaN)")
-    eigvals, basis = np.linalg.eigh(psi.T @ psi)
-    return cavi.CaviData(
-        psi_t_y=jnp.asarray(y @ psi),
-        y_sq=jnp.asarray(np.sum(y**2, axis=1)),
-        num_obs=jnp.full((y.shape[0],), float(y.shape[1])),
-        gram=cavi.SharedGram(jnp.asarray(basis), jnp.asarray(np.maximum(eigvals, 0.0))),
-    )
+    return cavi.sufficient_statistics(model_data(demos, num_basis, width), shared_psi=True)

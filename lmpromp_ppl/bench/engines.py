@@ -16,7 +16,7 @@ from jax import Array
 from lmpromp_ppl.basis import design_matrix
 from lmpromp_ppl.bench.config import BenchConfig, NutsSettings, RowSpec, SviSettings, row_hyper
 from lmpromp_ppl.bench.data import row_demonstrations, shared_cavi_data
-from lmpromp_ppl.data.core import ModelData
+from lmpromp_ppl.data.core import ModelData, as_float64
 from lmpromp_ppl.inference import cavi
 from lmpromp_ppl.models.hyper import Hyperparameters
 from lmpromp_ppl.results import package_version
@@ -157,7 +157,7 @@ def bench_svi(
     from lmpromp_ppl.inference import svi as svi_engine
 
     guide_kind = guide_name.removeprefix("svi_")
-    data = ModelData(*(jnp.asarray(a, jnp.float64) for a in md))
+    data = as_float64(md).dense()
     model, guide = svi_engine.make_guide(guide_kind, "lmpromp", data, hyper, collapsed="w")
     fixed: dict = {}
     optimiser = SVI(model, guide, Adam(settings.learning_rate), Trace_ELBO())

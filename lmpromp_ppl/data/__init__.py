@@ -1,6 +1,6 @@
 """Demonstration data: the :class:`Demonstrations` type, loaders and files."""
 
-from lmpromp_ppl.data.core import Demonstrations, ModelData, Scaling, model_data, standardise
+from lmpromp_ppl.data.core import Demonstrations, ModelData, PhaseData, Scaling, as_float64, model_data, standardise
 from lmpromp_ppl.data.files import load_csv, load_npz, save_csv, save_npz
 from lmpromp_ppl.data.lasa import lasa_shapes, load_lasa
 from lmpromp_ppl.data.prepared import PreparedDataset, load_demonstrations, prepare_dataset
@@ -16,6 +16,8 @@ from lmpromp_ppl.data.ucr import load_gunpoint, load_ts, read_ts
 __all__ = [
     "Demonstrations",
     "ModelData",
+    "PhaseData",
+    "as_float64",
     "Scaling",
     "model_data",
     "standardise",

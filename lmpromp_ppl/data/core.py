@@ -5,8 +5,10 @@ Demonstrations hold per-demonstration times ``(T_i,)`` and positions
 demonstration's time to [0, 1] by its own start and duration (docs/cli.md).
 :func:`standardise` scales each DoF to zero mean and unit variance on the
 training set; the :class:`Scaling` is stored with every fit.
-:func:`model_data` turns demonstrations into the padded arrays that every
-engine consumes (:class:`ModelData`).
+:func:`model_data` turns demonstrations into the compact model inputs that
+every engine consumes (:class:`PhaseData`: each demonstration's basis at its
+phases, O(L T (J + D)) memory); :class:`ModelData` is the dense form with one
+design matrix per demonstration, for any design.
 """
 
 from __future__ import annotations
@@ -18,10 +20,10 @@ import numpy as np
 import jax.numpy as jnp
 from jax import Array
 
-from lmpromp_ppl.basis import DEFAULT_WIDTH, design_matrix
+from lmpromp_ppl.basis import DEFAULT_WIDTH, rbf_basis
 from lmpromp_ppl.errors import DataError
 
-__all__ = ["Demonstrations", "Scaling", "ModelData", "standardise", "model_data"]
+__all__ = ["Demonstrations", "Scaling", "ModelData", "PhaseData", "as_float64", "standardise", "model_data"]
 
 
 def _as_float(name: str, a, ndim: int) -> np.ndarray:
@@ -199,7 +201,11 @@ def standardise(
 
 
 class ModelData(NamedTuple):
-    """Padded model inputs shared by every engine.
+    """Dense model inputs: one design matrix per demonstration.
+
+    The general form, for any design (tests, simulation, via-points); the one
+    data path (:func:`model_data`) gives the compact :class:`PhaseData`
+    instead, which every engine also accepts.
 
     Attributes
     ----------
@@ -225,24 +231,107 @@ class ModelData(NamedTuple):
         psi = np.asarray(self.psi)
         return bool(np.all(np.asarray(self.mask) == 1.0) and np.all(psi == psi[:1]))
 
+    def dense(self) -> "ModelData":
+        return self
+
+
+class PhaseData(NamedTuple):
+    r"""Compact model inputs: each demonstration's basis at its phases, in O(L T (J + D)) memory.
+
+    The design matrix of demonstration i is block-diagonal over the DoF,
+    :math:`\Psi_i = \mathbf I_D \otimes \Phi_i` in the layout of
+    :mod:`lmpromp_ppl.basis` (row ``t * D + k``, columns ``k * J : (k + 1) * J``),
+    so storing :math:`\Phi_i` (T, J) instead of :math:`\Psi_i` (T D, D J) saves a
+    factor of :math:`D^2`; when every demonstration has the same phases one
+    :math:`\Phi` is stored for all (``phi`` with a leading 1).  For L = 1000,
+    T = 120, D = 7, J = 60 that is 13 MB instead of the dense 2.8 GB.  The
+    engines compute their statistics from it (:func:`lmpromp_ppl.inference.cavi.sufficient_statistics`);
+    :attr:`psi`, :attr:`y` and :attr:`mask` give the dense view of :class:`ModelData`
+    (built on demand) for the code that needs single design matrices.
+
+    Attributes
+    ----------
+    phi : (L, T, J) or (1, T, J) the single-DoF basis at each demonstration's phases; 0 where padded
+    values : (L, T, D) observations; 0 where not observed
+    observed : (L, T, D) 1.0 for an observed entry, 0.0 for padding or a missing value
+    """
+
+    phi: Array
+    values: Array
+    observed: Array
+
+    @property
+    def num_demos(self) -> int:
+        return self.values.shape[0]
+
+    @property
+    def num_dofs(self) -> int:
+        return self.values.shape[2]
+
+    @property
+    def num_basis(self) -> int:
+        return self.phi.shape[2]
+
+    @property
+    def num_weights(self) -> int:
+        return self.num_dofs * self.num_basis
+
+    @property
+    def psi(self) -> Array:
+        """The dense design matrices (L, T D, D J) of :class:`ModelData`."""
+        L, T, D = self.values.shape
+        J = self.num_basis
+        eye = jnp.eye(D, dtype=jnp.result_type(self.phi))
+        # psi[l, t, k, m, j] = eye[k, m] * phi[l, t, j]
+        dense = eye[None, None, :, :, None] * jnp.asarray(self.phi)[:, :, None, None, :]
+        return jnp.broadcast_to(dense, (L, T, D, D, J)).reshape(L, T * D, D * J)
+
+    @property
+    def y(self) -> Array:
+        """(L, T D) the observations flattened time-major, as :attr:`ModelData.y`."""
+        return jnp.reshape(self.values, (self.num_demos, -1))
+
+    @property
+    def mask(self) -> Array:
+        """(L, T D) the mask flattened time-major, as :attr:`ModelData.mask`."""
+        return jnp.reshape(self.observed, (self.num_demos, -1))
+
+    def shares_psi(self) -> bool:
+        """True when every demonstration has the same design matrix and no padding."""
+        phi = np.asarray(self.phi)
+        return bool(np.all(np.asarray(self.observed) == 1.0) and (phi.shape[0] == 1 or np.all(phi == phi[:1])))
+
+    def dense(self) -> ModelData:
+        """The same inputs as :class:`ModelData` (O(L T D^2 J) memory)."""
+        return ModelData(self.psi, self.y, self.mask)
+
+
+def as_float64(data: ModelData | PhaseData) -> ModelData | PhaseData:
+    """The same model inputs (of the same type) as float64 JAX arrays."""
+    return type(data)._make(jnp.asarray(a, dtype=jnp.float64) for a in data)
+
 
 def model_data(
     demos: Demonstrations, num_basis: int, width: float = DEFAULT_WIDTH, phases: Sequence[np.ndarray] | None = None
-) -> ModelData:
-    """Build :class:`ModelData` from (standardised) demonstrations.
+) -> PhaseData:
+    """Build the compact model inputs (:class:`PhaseData`) from (standardised) demonstrations.
 
-    Demonstrations of different lengths are padded with masked rows.
+    Demonstrations of different lengths are padded with unobserved samples;
+    demonstrations that share their phases share one basis matrix.
     """
     phases = demos.phases() if phases is None else phases
-    num_dofs = demos.num_dofs
-    size = max(p.shape[0] for p in phases) * num_dofs
-    d = num_dofs * num_basis
-    psi = np.zeros((demos.num_demos, size, d))
-    y = np.zeros((demos.num_demos, size))
-    mask = np.zeros((demos.num_demos, size))
-    for i, (z, pos) in enumerate(zip(phases, demos.positions)):
-        n = z.shape[0] * num_dofs
-        psi[i, :n] = np.asarray(design_matrix(z, num_dofs, num_basis, width))
-        y[i, :n] = pos.reshape(-1)
-        mask[i, :n] = 1.0
-    return ModelData(jnp.asarray(psi), jnp.asarray(y), jnp.asarray(mask))
+    num_steps = max(p.shape[0] for p in phases)
+    first = np.asarray(phases[0])
+    shared = all(p.shape == first.shape and np.array_equal(p, first) for p in phases)
+    if shared:
+        phi = np.asarray(rbf_basis(first, num_basis, width))[None]
+    else:
+        phi = np.zeros((demos.num_demos, num_steps, num_basis))
+        for i, z in enumerate(phases):
+            phi[i, : z.shape[0]] = np.asarray(rbf_basis(z, num_basis, width))
+    values = np.zeros((demos.num_demos, num_steps, demos.num_dofs))
+    observed = np.zeros_like(values)
+    for i, pos in enumerate(demos.positions):
+        values[i, : pos.shape[0]] = pos
+        observed[i, : pos.shape[0]] = 1.0
+    return PhaseData(jnp.asarray(phi), jnp.asarray(values), jnp.asarray(observed))

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lmpromp_ppl.basis import DEFAULT_WIDTH
-from lmpromp_ppl.data.core import Demonstrations, ModelData, Scaling, model_data
+from lmpromp_ppl.data.core import Demonstrations, PhaseData, Scaling, model_data
 from lmpromp_ppl.data.core import standardise as standardise_demonstrations
 from lmpromp_ppl.errors import LmprompError
 
@@ -31,7 +31,7 @@ class PreparedDataset:
     raw : the demonstrations in data units
     scaled : the demonstrations standardised per DoF by ``scaling``
     scaling : the per-DoF scaling (identity when not standardised)
-    model_data : padded model inputs of ``scaled`` with ``num_basis`` basis functions per DoF
+    model_data : compact model inputs (:class:`PhaseData`) of ``scaled`` with ``num_basis`` basis functions per DoF
     num_basis : J
     width : the basis width
     """
@@ -40,7 +40,7 @@ class PreparedDataset:
     raw: Demonstrations
     scaled: Demonstrations
     scaling: Scaling
-    model_data: ModelData
+    model_data: PhaseData
     num_basis: int
     width: float
 

@@ -140,7 +140,7 @@ from numpyro.infer.reparam import LocScaleReparam
 from numpyro.infer.util import ParamInfo, initialize_model
 
 from lmpromp_ppl._keys import raw_key
-from lmpromp_ppl.data.core import ModelData
+from lmpromp_ppl.data.core import ModelData, as_float64
 from lmpromp_ppl.errors import LmprompError
 from lmpromp_ppl.inference.compiled import lookup, remember
 from lmpromp_ppl.inference.warm_start import cavi_start
@@ -401,7 +401,7 @@ def fit_nuts(
         raise LmprompError(f"chain_method must be 'sequential' or 'vectorized', got {chain_method!r}")
     if not isinstance(hyper, Hyperparameters):
         raise LmprompError("hyper must be a Hyperparameters instance")
-    data = ModelData(*(jnp.asarray(a, dtype=jnp.float64) for a in data))
+    data = as_float64(data).dense()
     fixed = {k: jnp.asarray(v, dtype=jnp.float64) for k, v in (fixed or {}).items()}
     init_values = {k: jnp.asarray(v, dtype=jnp.float64) for k, v in (init_values or {}).items()}
     # run the model once on the concrete data: shape and value errors surface

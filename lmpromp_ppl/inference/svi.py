@@ -90,7 +90,7 @@ from numpyro.optim import _NumPyroOptim
 
 from lmpromp_ppl._keys import raw_key
 from lmpromp_ppl._progress import line_reporter
-from lmpromp_ppl.data.core import ModelData
+from lmpromp_ppl.data.core import ModelData, as_float64
 from lmpromp_ppl.errors import ConvergenceWarning, LmprompError
 from lmpromp_ppl.inference.compiled import lookup, remember
 from lmpromp_ppl.inference.svi_guides import (
@@ -318,7 +318,7 @@ def fit_svi(
     if not (np.isfinite(stop_tol) and stop_tol >= 0):
         raise LmprompError(f"stop_tol must be non-negative, got {stop_tol!r}")
     collapse = resolve_collapse(model_name, collapsed)
-    data = ModelData(*(jnp.asarray(a, dtype=jnp.float64) for a in data))
+    data = as_float64(data).dense()
     masked_observations(data)  # shape and value checks with their own messages
     fixed = {k: jnp.asarray(v, dtype=jnp.float64) for k, v in (fixed or {}).items()}
     model, guide_fn = make_guide(guide, model_name, data, hyper, collapsed=collapse, rank=rank,

@@ -38,7 +38,7 @@ import numpyro
 import numpyro.distributions as dist
 from jax import Array
 
-from lmpromp_ppl.data.core import ModelData
+from lmpromp_ppl.data.core import ModelData, PhaseData
 from lmpromp_ppl.errors import DataError
 from lmpromp_ppl.models.hyper import Hyperparameters
 
@@ -81,8 +81,10 @@ def masked_observations(data: ModelData) -> MaskedObservations:
         if the shapes disagree, the mask is not 0/1, or an observed entry is
         not finite.
     """
+    if isinstance(data, PhaseData):  # the compact form of the one data path: its dense view
+        data = data.dense()
     if not isinstance(data, tuple) or len(data) != 3:
-        raise DataError("model data must be a ModelData (psi, y, mask)")
+        raise DataError("model data must be a ModelData (psi, y, mask) or a PhaseData")
     psi, y, mask = (jnp.asarray(a) for a in data)
     if psi.ndim != 3:
         raise DataError(f"psi must have shape (L, S, d), got {psi.shape}")

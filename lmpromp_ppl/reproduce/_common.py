@@ -26,7 +26,7 @@ import jax
 import numpy as np
 
 from lmpromp_ppl._progress import show_progress_bars
-from lmpromp_ppl.data.core import Demonstrations, ModelData, Scaling
+from lmpromp_ppl.data.core import Demonstrations, ModelData, PhaseData, Scaling
 from lmpromp_ppl.data.prepared import prepare_dataset
 from lmpromp_ppl.errors import ConvergenceWarning, EngineDivergedError, LmprompError
 from lmpromp_ppl.basis import DEFAULT_NUM_BASIS, DEFAULT_WIDTH, THESIS_WIDTH
@@ -249,8 +249,8 @@ def time_mask(num_times: int, num_dofs: int, keep: np.ndarray) -> np.ndarray:
 
 def standardised_model_data(
     demos: Demonstrations, num_basis: int, keep: np.ndarray | None = None, *, width: float
-) -> tuple[ModelData, Scaling, Demonstrations]:
-    """Standardise ``demos`` on themselves and build :class:`ModelData` with basis width ``width``.
+) -> tuple[PhaseData, Scaling, Demonstrations]:
+    """Standardise ``demos`` on themselves and build the model inputs with basis width ``width``.
 
     ``keep`` (T,) bool marks the time samples that are observed (same for every
     demonstration; the others are masked, keeping the array shapes).
@@ -259,7 +259,7 @@ def standardised_model_data(
     data = prepared.model_data
     if keep is not None:
         row = time_mask(demos.lengths[0], demos.num_dofs, keep)
-        data = data._replace(mask=data.mask * row[None, :])
+        data = data._replace(observed=data.observed * row.reshape(data.observed.shape[1:])[None])
     return data, prepared.scaling, prepared.scaled
 
 

@@ -6,7 +6,7 @@ Every update reads the data only through :class:`CaviData`: :math:`\Psi_i^Ty_i`,
 
 Shared design matrix
 --------------------
-When every demonstration has the same :math:`\Psi` (:meth:`ModelData.shares_psi`),
+When every demonstration has the same :math:`\Psi` (``shares_psi()`` of :class:`~lmpromp_ppl.data.core.PhaseData` or :class:`~lmpromp_ppl.data.core.ModelData`),
 :func:`sufficient_statistics` computes one eigendecomposition
 :math:`\Psi^T\Psi = U \operatorname{diag}(s) U^T` per fit and the weight
 covariances are kept in that basis (:class:`EigenCovariance`):
@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from lmpromp_ppl.data.core import ModelData
+from lmpromp_ppl.data.core import ModelData, PhaseData
 from lmpromp_ppl.errors import DataError
 
 __all__ = [
@@ -100,15 +100,16 @@ class CaviData(NamedTuple):
     gram: DemoGrams | SharedGram | DiagonalGram
 
 
-def sufficient_statistics(data: ModelData, shared_psi: bool | None = None) -> CaviData:
+def sufficient_statistics(data: ModelData | PhaseData, shared_psi: bool | None = None) -> CaviData:
     """Precompute the data statistics for CAVI.
 
     Parameters
     ----------
-    data : padded model inputs (psi (L, S, d), y (L, S), mask (L, S))
+    data : compact model inputs (:class:`PhaseData`, from the one data path) or dense
+        ones (:class:`ModelData`: psi (L, S, d), y (L, S), mask (L, S))
     shared_psi : use the fast path with one eigendecomposition of :math:`\\Psi^T\\Psi`.
-        ``None`` chooses it when :meth:`ModelData.shares_psi`; ``True`` demands it
-        (error when the demonstrations do not share one design matrix).
+        ``None`` chooses it when the demonstrations share one design matrix
+        (``data.shares_psi()``); ``True`` demands it (error when they do not).
 
     Returns
     -------
@@ -120,6 +121,8 @@ def sufficient_statistics(data: ModelData, shared_psi: bool | None = None) -> Ca
         shared_psi = shares
     elif shared_psi and not shares:
         raise DataError("shared_psi=True but the demonstrations do not share one design matrix")
+    if isinstance(data, PhaseData):
+        return _phase_statistics(data, shared_psi)
     mask = jnp.asarray(data.mask, jnp.float64)
     # masked entries (padding, or NaN for a missing value) are neutralised
     psi = jnp.where(mask[..., None] > 0, jnp.asarray(data.psi, jnp.float64), 0.0)
@@ -135,10 +138,54 @@ def sufficient_statistics(data: ModelData, shared_psi: bool | None = None) -> Ca
     return CaviData(psi_t_y, y_sq, num_obs, gram)
 
 
-def check_model_data(data: ModelData) -> None:
+def _phase_statistics(data: PhaseData, shared_psi: bool) -> CaviData:
+    r"""The statistics of :func:`sufficient_statistics` from compact inputs, never forming :math:`\Psi_i`.
+
+    With :math:`\Psi_i = \mathbf I_D \otimes \Phi_i` (:class:`PhaseData`), block k of
+    :math:`\Psi_i^T y_i` is :math:`\Phi_i^T y_{i,k}` and block (k, k) of the masked Gram
+    matrix is :math:`\Phi_i^T \operatorname{diag}(o_{i,k}) \Phi_i` (the off-diagonal blocks
+    are 0): O(L T D J) for the first, O(L T D J^2) for the second.  On the shared path
+    the one Gram matrix is :math:`\mathbf I_D \otimes \Phi^T\Phi`, so one J x J
+    eigendecomposition :math:`\Phi^T\Phi = U_\phi \operatorname{diag}(s_\phi) U_\phi^T`
+    gives :math:`U = \mathbf I_D \otimes U_\phi` and :math:`s` = ``s_phi`` repeated D times.
+    """
+    observed = jnp.asarray(data.observed, jnp.float64)
+    values = jnp.where(observed > 0, jnp.asarray(data.values, jnp.float64), 0.0)
+    phi = jnp.asarray(data.phi, jnp.float64)
+    L, _, D = values.shape
+    J = phi.shape[-1]
+    psi_t_y = jnp.einsum("itj,itk->ikj", jnp.broadcast_to(phi, (L,) + phi.shape[1:]), values).reshape(L, D * J)
+    y_sq = jnp.sum(values**2, axis=(1, 2))
+    num_obs = jnp.sum(observed, axis=(1, 2))
+    if shared_psi:
+        eigvals, basis = jnp.linalg.eigh(phi[0].T @ phi[0])
+        return CaviData(psi_t_y, y_sq, num_obs, SharedGram(
+            jnp.kron(jnp.eye(D), basis), jnp.tile(jnp.maximum(eigvals, 0.0), D)))
+    blocks = jnp.einsum("itj,itk,itl->ikjl", jnp.broadcast_to(phi, (L,) + phi.shape[1:]), observed,
+                        jnp.broadcast_to(phi, (L,) + phi.shape[1:]))  # (L, D, J, J)
+    eye = jnp.eye(D, dtype=blocks.dtype)
+    grams = (eye[None, :, None, :, None] * blocks[:, :, :, None, :]).reshape(L, D * J, D * J)
+    return CaviData(psi_t_y, y_sq, num_obs, DemoGrams(grams))
+
+
+def check_model_data(data: ModelData | PhaseData) -> None:
     """Refuse model inputs the engine cannot use, with a :class:`~lmpromp_ppl.errors.DataError`."""
+    if isinstance(data, PhaseData):
+        phi, values, observed = (np.asarray(a) for a in data)
+        if (phi.ndim != 3 or values.ndim != 3 or observed.shape != values.shape
+                or phi.shape[0] not in (1, values.shape[0]) or phi.shape[1] != values.shape[1]):
+            raise DataError(
+                f"inconsistent PhaseData shapes: phi {phi.shape}, values {values.shape}, observed {observed.shape}"
+            )
+        if not np.all((observed == 0.0) | (observed == 1.0)):
+            raise DataError("PhaseData.observed must contain only 0 and 1")
+        if not np.all(np.isfinite(values[observed == 1.0])):
+            raise DataError("observed entries of PhaseData.values contain NaN or inf")
+        if not np.all(np.isfinite(np.broadcast_to(phi, values.shape[:2] + phi.shape[2:])[np.any(observed == 1.0, axis=-1)])):
+            raise DataError("basis rows of observed samples contain NaN or inf")
+        return
     if not isinstance(data, ModelData):
-        raise DataError(f"expected ModelData, got {type(data).__name__}")
+        raise DataError(f"expected ModelData or PhaseData, got {type(data).__name__}")
     psi, y, mask = (np.asarray(a) for a in data)
     if psi.ndim != 3 or y.shape != psi.shape[:2] or mask.shape != psi.shape[:2]:
         raise DataError(

@@ -1,0 +1,148 @@
+"""The compact model inputs (PhaseData) against the dense design matrices they replace.
+
+``model_data`` keeps each demonstration's single-DoF basis at its phases
+instead of one dense (T D, D J) design matrix per demonstration.  These tests
+check that nothing downstream can tell: the dense view equals the design
+matrices built the former way, every NumPyro declaration gives the same log
+density on both forms, and CAVI's statistics agree on the shared and the
+per-demonstration paths.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from numpyro import handlers
+from numpyro.infer.util import log_density
+
+from lmpromp_ppl.basis import design_matrix
+from lmpromp_ppl.data.core import Demonstrations, ModelData, PhaseData, model_data
+from lmpromp_ppl.errors import DataError
+from lmpromp_ppl.inference import cavi
+from lmpromp_ppl.models import Hyperparameters
+from lmpromp_ppl.models.registry import model_function
+
+NUM_BASIS = 3
+HYPER = Hyperparameters(beta=4.0, lambda0=0.7, gamma=1.3, a0=2.5, b0=0.6, c0=1.7, d0=0.9, latent_dim=2,
+                        num_components=2, learn_beta=True, beta_a0=3.0, beta_b0=0.5)
+
+
+def _demos(lengths, seed, shared=False):
+    rng = np.random.default_rng(seed)
+    if shared:
+        grid = np.linspace(0.0, 2.0, lengths[0])
+        times = [grid for _ in lengths]
+    else:
+        times = [np.sort(rng.uniform(0, 1, n)) + np.arange(n) for n in lengths]
+    return Demonstrations(times, [rng.normal(size=(n, 2)) for n in lengths])
+
+
+def dense_the_former_way(demos, num_basis):
+    """The padded (L, S, d) inputs as ``model_data`` built them before the compact form."""
+    phases = demos.phases()
+    size = max(p.shape[0] for p in phases) * demos.num_dofs
+    d = demos.num_dofs * num_basis
+    psi = np.zeros((demos.num_demos, size, d))
+    y = np.zeros((demos.num_demos, size))
+    mask = np.zeros((demos.num_demos, size))
+    for i, (z, pos) in enumerate(zip(phases, demos.positions)):
+        n = z.shape[0] * demos.num_dofs
+        psi[i, :n] = np.asarray(design_matrix(z, demos.num_dofs, num_basis))
+        y[i, :n] = pos.reshape(-1)
+        mask[i, :n] = 1.0
+    return ModelData(jnp.asarray(psi), jnp.asarray(y), jnp.asarray(mask))
+
+
+CASES = {"ragged": dict(lengths=(6, 4, 5), seed=0), "shared": dict(lengths=(5, 5, 5, 5), seed=1, shared=True)}
+
+
+@pytest.fixture(scope="module", params=sorted(CASES))
+def pair(request):
+    demos = _demos(**CASES[request.param])
+    return request.param, model_data(demos, NUM_BASIS), dense_the_former_way(demos, NUM_BASIS)
+
+
+def test_dense_view_equals_the_former_design_matrices(pair):
+    case, compact, dense = pair
+    assert isinstance(compact, PhaseData)
+    # one basis matrix for demonstrations that share their phases
+    assert compact.phi.shape[0] == (1 if case == "shared" else compact.num_demos)
+    assert compact.shares_psi() == dense.shares_psi() == (case == "shared")
+    view = compact.dense()
+    for got, want in zip(view, dense):
+        np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+    assert (compact.num_demos, compact.num_weights) == (dense.num_demos, dense.num_weights)
+
+
+MODELS = [("lmpromp", "none"), ("lmpromp", "w"), ("lmpromp", "wh"), ("lmpromp", "whb"), ("mixture", "wh"),
+          ("mixture", "none"), ("mixture", "w"), ("promp", "none"), ("promp", "w")]
+
+
+@pytest.mark.parametrize("name, collapsed", MODELS)
+def test_every_declaration_has_the_same_log_density_on_both_forms(pair, name, collapsed):
+    """At parameters drawn from the prior (random inputs), the compact and the dense inputs
+    give the same log joint density."""
+    _, compact, dense = pair
+    model = model_function(name, collapsed)
+    for seed in range(1):
+        trace = handlers.trace(handlers.seed(model, jax.random.key(seed))).get_trace(dense, HYPER)
+        params = {k: v["value"] for k, v in trace.items() if v["type"] == "sample" and not v["is_observed"]}
+        want = float(log_density(model, (dense, HYPER), {}, params)[0])
+        got = float(log_density(model, (compact, HYPER), {}, params)[0])
+        assert np.isfinite(want)
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-9)
+
+
+def test_cavi_statistics_are_the_same_on_both_forms(pair):
+    case, compact, dense = pair
+    for shared in ([True, False] if case == "shared" else [False]):
+        got = cavi.sufficient_statistics(compact, shared_psi=shared)
+        want = cavi.sufficient_statistics(dense, shared_psi=shared)
+        for name in ("psi_t_y", "y_sq", "num_obs"):
+            np.testing.assert_allclose(getattr(got, name), getattr(want, name), rtol=1e-13, atol=1e-13)
+        if shared:  # the eigenvectors may differ within repeated eigenvalues; the Gram matrix may not
+            gram = [g.basis @ (g.eigvals[:, None] * g.basis.T) for g in (got.gram, want.gram)]
+            np.testing.assert_allclose(gram[0], gram[1], atol=1e-12)
+            np.testing.assert_allclose(got.gram.basis.T @ got.gram.basis, np.eye(compact.num_weights), atol=1e-12)
+        else:
+            np.testing.assert_allclose(got.gram.matrices, want.gram.matrices, atol=1e-13)
+
+
+def test_a_missing_value_is_masked_alike_on_both_forms():
+    demos = _demos((6, 4, 5), seed=2)
+    compact = model_data(demos, NUM_BASIS)
+    observed = np.asarray(compact.observed).copy()
+    observed[1, 2, 1] = 0.0  # demonstration 1, time 2, DoF 1
+    compact = compact._replace(observed=jnp.asarray(observed))
+    dense = compact.dense()
+    assert float(dense.mask[1, 2 * 2 + 1]) == 0.0
+    got, want = cavi.sufficient_statistics(compact), cavi.sufficient_statistics(dense)
+    np.testing.assert_allclose(got.num_obs, want.num_obs)
+    np.testing.assert_allclose(got.psi_t_y, want.psi_t_y, atol=1e-13)
+    np.testing.assert_allclose(got.gram.matrices, want.gram.matrices, atol=1e-13)
+
+
+def test_compact_inputs_grow_as_L_T_D_not_as_the_dense_design():
+    """L = 300 demonstrations of 120 samples, D = 7, J = 60: the dense design would take
+    300 x 840 x 420 x 8 bytes = 847 MB; the compact inputs take what the data take."""
+    L, T, D, J = 300, 120, 7, 60
+    rng = np.random.default_rng(0)
+    grid = np.linspace(0.0, 1.0, T)
+    demos = Demonstrations([grid] * L, list(rng.normal(size=(L, T, D))))
+    compact = model_data(demos, J)
+    size = sum(np.asarray(a).nbytes for a in compact)
+    assert size <= 2 * L * T * D * 8 + T * J * 8
+    assert size < (L * T * D * D * J * 8) / 100
+    assert compact.shares_psi()
+
+
+def test_inconsistent_compact_inputs_are_refused():
+    compact = model_data(_demos((6, 4, 5), seed=0), NUM_BASIS)
+    with pytest.raises(DataError, match="inconsistent PhaseData"):
+        cavi.sufficient_statistics(compact._replace(values=compact.values[:, :-1]))
+    with pytest.raises(DataError, match="only 0 and 1"):
+        cavi.sufficient_statistics(compact._replace(observed=compact.observed * 0.5))
+    bad = np.asarray(compact.values).copy()
+    bad[0, 0, 0] = np.nan
+    with pytest.raises(DataError, match="NaN or inf"):
+        cavi.sufficient_statistics(compact._replace(values=jnp.asarray(bad)))
