@@ -107,8 +107,8 @@ OBSERVED_FRACTION = 1.0 / 3.0
 def heldout_scores(point: Mapping[str, Any], data, hyper, num_dofs: int) -> dict[str, float]:
     """``lpd`` (per predicted value) and ``rmse`` of the rest of each held-out demonstration given its first third.
 
-    ``data`` is :class:`~lmpromp_ppl.data.core.ModelData` of the held-out
-    demonstrations (rows time-major, ``num_dofs`` per time step); module
+    ``data`` holds the model inputs (:class:`~lmpromp_ppl.data.core.PhaseData` or
+    :class:`~lmpromp_ppl.data.core.ModelData`) of the held-out demonstrations (rows time-major, ``num_dofs`` per time step); module
     docstring for the prediction both metrics score.  The conditioning and the
     scores are :func:`lmpromp_ppl.predict.condition_gaussian` and
     :func:`lmpromp_ppl.predict.score_heldout`.
@@ -127,7 +127,7 @@ def heldout_scores(point: Mapping[str, Any], data, hyper, num_dofs: int) -> dict
                            np.zeros(n, dtype=int))
 
     total_lpd, total_sq, total_n = 0.0, 0.0, 0
-    for psi, y, mask in zip(*(np.asarray(a) for a in data)):
+    for psi, y, mask in zip(*(np.asarray(a) for a in data.dense())):
         keep = mask > 0
         steps = np.arange(psi.shape[0]) // num_dofs
         seen = keep & (steps < max(1, math.ceil(OBSERVED_FRACTION * (steps[keep].max() + 1))))
