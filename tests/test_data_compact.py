@@ -16,11 +16,11 @@ from numpyro import handlers
 from numpyro.infer.util import log_density
 
 from lmpromp_ppl.basis import design_matrix
-from lmpromp_ppl.data.core import Demonstrations, ModelData, PhaseData, model_data
-from lmpromp_ppl.errors import DataError
+from lmpromp_ppl.data.core import Demonstrations, ModelData, PhaseData, SharedDesign, model_data, shared_design
+from lmpromp_ppl.errors import DataError, LmprompError
 from lmpromp_ppl.inference import cavi
 from lmpromp_ppl.models import Hyperparameters
-from lmpromp_ppl.models.registry import model_function
+from lmpromp_ppl.models.registry import model_function, model_inputs
 
 NUM_BASIS = 3
 HYPER = Hyperparameters(beta=4.0, lambda0=0.7, gamma=1.3, a0=2.5, b0=0.6, c0=1.7, d0=0.9, latent_dim=2,
@@ -87,10 +87,75 @@ def test_every_declaration_has_the_same_log_density_on_both_forms(pair, name, co
     for seed in range(1):
         trace = handlers.trace(handlers.seed(model, jax.random.key(seed))).get_trace(dense, HYPER)
         params = {k: v["value"] for k, v in trace.items() if v["type"] == "sample" and not v["is_observed"]}
-        want = float(log_density(model, (dense, HYPER), {}, params)[0])
-        got = float(log_density(model, (compact, HYPER), {}, params)[0])
+        density = jax.jit(lambda inputs, p: log_density(model, (inputs, HYPER), {}, p)[0])  # one program per form
+        want = float(density(dense, params))
+        got = float(density(compact, params))
         assert np.isfinite(want)
         np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-9)
+        # the form the engines evaluate (shared-design statistics where the design is shared)
+        fastest = model_inputs(name, collapsed, compact)
+        np.testing.assert_allclose(float(density(fastest, params)), want, rtol=1e-12, atol=1e-9)
+
+
+SHARED_MODELS = [("lmpromp", "none"), ("lmpromp", "w"), ("lmpromp", "wh"), ("mixture", "w"), ("mixture", "wh")]
+
+
+@pytest.mark.parametrize("name, collapsed", SHARED_MODELS)
+def test_shared_design_statistics_give_the_dense_density_and_gradient(name, collapsed):
+    """Where every demonstration shares one design, the declarations evaluate sufficient
+    statistics in its eigenbasis (O(L d V)); value and gradient equal the dense form's, with
+    the statistics built from PhaseData or from the dense ModelData."""
+    demos = _demos(**CASES["shared"])
+    compact = model_data(demos, NUM_BASIS)
+    dense = dense_the_former_way(demos, NUM_BASIS)
+    stats = model_inputs(name, collapsed, compact)
+    assert isinstance(stats, SharedDesign)
+    from_dense = shared_design(dense)
+    np.testing.assert_allclose(np.sort(from_dense.eig), np.sort(stats.eig), atol=1e-12)
+    model = model_function(name, collapsed)
+    trace = handlers.trace(handlers.seed(model, jax.random.key(3))).get_trace(dense, HYPER)
+    params = {k: v["value"] for k, v in trace.items() if v["type"] == "sample" and not v["is_observed"]}
+
+    @jax.jit
+    def value_and_grad(inputs):
+        return jax.value_and_grad(lambda p: log_density(model, (inputs, HYPER), {}, p)[0])(params)
+
+    want, want_grad = value_and_grad(dense)
+    for inputs in (stats, from_dense):
+        got, got_grad = value_and_grad(inputs)
+        np.testing.assert_allclose(float(got), float(want), rtol=1e-12)
+        for site in want_grad:
+            np.testing.assert_allclose(np.asarray(got_grad[site]), np.asarray(want_grad[site]),
+                                       rtol=1e-9, atol=1e-9 * float(np.max(np.abs(want_grad[site]))))
+
+
+def test_shared_design_only_where_every_demonstration_has_the_same_observed_design():
+    ragged = model_data(_demos(**CASES["ragged"]), NUM_BASIS)
+    assert shared_design(ragged) is None
+    assert isinstance(model_inputs("lmpromp", "wh", ragged), ModelData)
+    shared = model_data(_demos(**CASES["shared"]), NUM_BASIS)
+    observed = np.asarray(shared.observed).copy()
+    observed[0, 1, 0] = 0.0  # one missing value breaks the shared design
+    assert shared_design(shared._replace(observed=jnp.asarray(observed))) is None
+    # the ProMP and the offset-collapsed LMProMP keep the dense form
+    assert isinstance(model_inputs("promp", "w", shared), ModelData)
+    assert isinstance(model_inputs("lmpromp", "whb", shared), ModelData)
+    # statistics cannot simulate demonstrations
+    model = model_function("lmpromp", "wh")
+    with pytest.raises(LmprompError, match="needs their design"):
+        handlers.seed(model, 0)(shared_design(shared), HYPER, observed=False)
+
+
+def test_phases_equal_up_to_rounding_share_one_basis():
+    """Recordings whose clocks differ give phases that agree only to rounding (LASA: 2e-16);
+    they share one basis matrix, and so the eigenbasis paths."""
+    times = [np.arange(7) * step for step in (0.09389994, 0.11384475, 0.0731)]  # LASA's sample steps
+    rng = np.random.default_rng(0)
+    demos = Demonstrations(times, [rng.normal(size=(7, 2)) for _ in times])
+    assert not all(np.array_equal(p, demos.phases()[0]) for p in demos.phases())
+    compact = model_data(demos, NUM_BASIS)
+    assert compact.phi.shape[0] == 1 and compact.shares_psi()
+    assert isinstance(model_inputs("lmpromp", "wh", compact), SharedDesign)
 
 
 def test_cavi_statistics_are_the_same_on_both_forms(pair):

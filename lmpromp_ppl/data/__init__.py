@@ -1,6 +1,16 @@
 """Demonstration data: the :class:`Demonstrations` type, loaders and files."""
 
-from lmpromp_ppl.data.core import Demonstrations, ModelData, PhaseData, Scaling, as_float64, model_data, standardise
+from lmpromp_ppl.data.core import (
+    Demonstrations,
+    ModelData,
+    PhaseData,
+    Scaling,
+    SharedDesign,
+    as_float64,
+    model_data,
+    shared_design,
+    standardise,
+)
 from lmpromp_ppl.data.files import load_csv, load_npz, save_csv, save_npz
 from lmpromp_ppl.data.lasa import lasa_shapes, load_lasa
 from lmpromp_ppl.data.prepared import PreparedDataset, load_demonstrations, prepare_dataset
@@ -17,6 +27,8 @@ __all__ = [
     "Demonstrations",
     "ModelData",
     "PhaseData",
+    "SharedDesign",
+    "shared_design",
     "as_float64",
     "Scaling",
     "model_data",

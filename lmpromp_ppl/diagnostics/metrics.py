@@ -411,6 +411,7 @@ def engine_khat(result, data, key, num_draws: int = 1000) -> dict:
     if engine == "cavi":
         from lmpromp_ppl.models.lmpromp import lmpromp_model
         from lmpromp_ppl.models.mixture import mixture_model
+        from lmpromp_ppl.models.registry import model_inputs
 
         if result.model == "mixture" and not bool(np.all(np.asarray(result.state.active))):
             out["note"] = "q has no factor for the removed mixture components, so log p - log q is not defined"
@@ -418,8 +419,8 @@ def engine_khat(result, data, key, num_draws: int = 1000) -> dict:
         draws = {k: np.asarray(v) for k, v in result.sampler(key_q, num_draws).items()}
         if result.model == "mixture":  # the explicit (z sampled) mixture, as q has a factor q(z)
             target = (mixture_model, (data, result.hyper, False))
-        else:
-            target = (lmpromp_model, (data, result.hyper))
+        else:  # on the fastest equal form of the data (shared-design statistics where possible)
+            target = (lmpromp_model, (model_inputs("lmpromp", "none", data), result.hyper))
         log_ratio = model_log_joint(*target, draws) - np.asarray(result.log_density(draws))
     elif engine.startswith("svi_"):
         if not hasattr(result.state, "context"):

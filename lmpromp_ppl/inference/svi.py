@@ -104,7 +104,7 @@ from lmpromp_ppl.inference.svi_guides import (
 from lmpromp_ppl.models.conditionals import draw_integrated_sites
 from lmpromp_ppl.models.hyper import Hyperparameters
 from lmpromp_ppl.models.lmpromp import masked_observations
-from lmpromp_ppl.models.registry import resolve_collapse
+from lmpromp_ppl.models.registry import model_inputs, resolve_collapse
 
 __all__ = [
     "GUIDES",
@@ -170,7 +170,7 @@ class SviResult(NamedTuple):
         model, guide = make_guide(ctx.guide, ctx.model_name, ctx.data, ctx.hyper, collapsed=ctx.collapse,
                                   rank=ctx.rank, fixed_names=tuple(sorted(ctx.fixed)))
         params = {k: jnp.asarray(v) for k, v in self.params.items()}
-        args = (ctx.data, ctx.fixed)
+        args = (self._inputs(), ctx.fixed)
         # An autoguide sets itself up on its first call by running the model under the
         # enclosing seed handler, which would shift the particles of that first call;
         # set it up here so every call with a key draws the same particles.
@@ -183,6 +183,11 @@ class SviResult(NamedTuple):
 
         log_ratio = jax.jit(jax.vmap(one))(jax.random.split(key, num_draws))
         return np.asarray(log_ratio), (model, guide, params, args)
+
+    def _inputs(self):
+        """The model inputs the fit evaluated (:func:`~lmpromp_ppl.models.registry.model_inputs`)."""
+        ctx = self.context
+        return model_inputs(ctx.model_name, "none" if ctx.guide == "meanfield" else ctx.collapse, ctx.data)
 
     def sample(self, key: jax.Array, num_draws: int) -> dict[str, np.ndarray]:
         r"""Draws from q with the contract's site names, each (num_draws, ...).
@@ -204,7 +209,8 @@ class SviResult(NamedTuple):
                  if (s["type"] == "sample" and not s["is_observed"]) or s["type"] == "deterministic"]
         params = {k: jnp.asarray(v) for k, v in self.params.items()}
         predictive = Predictive(model, guide=guide, params=params, num_samples=num_draws, return_sites=sites)
-        draws = dict(predictive(key_q, ctx.data, ctx.fixed))
+        # the model evaluates its fastest inputs (shared-design statistics where possible)
+        draws = dict(predictive(key_q, self._inputs(), ctx.fixed))
         collapse = "none" if ctx.guide == "meanfield" else ctx.collapse
         if collapse != "none":
             flat = dict(draws)
@@ -329,13 +335,16 @@ def fit_svi(
     else:
         init = dict(init_params or {})
     init = {k: jnp.asarray(v, dtype=jnp.float64) for k, v in init.items()}
+    # the automatic guides' model evaluates the fastest equal form of the data
+    # (shared-design statistics where possible; the meanfield guide's model is the full one)
+    inputs = model_inputs(model_name, "none" if guide == "meanfield" else collapse, data)
 
     if not (np.isfinite(learning_rate_decay) and 0 < learning_rate_decay <= 1):
         raise LmprompError(f"learning_rate_decay must lie in (0, 1], got {learning_rate_decay!r}")
     cache_key = (model_name, guide, collapse, rank, hyper, float(learning_rate_decay),
                  int(num_particles), int(window), tuple(sorted(fixed)),
-                 jax.tree_util.tree_structure((data, fixed, init)),
-                 tuple((jnp.shape(a), jnp.result_type(a)) for a in jax.tree_util.tree_leaves((data, fixed, init))))
+                 jax.tree_util.tree_structure((inputs, fixed, init)),
+                 tuple((jnp.shape(a), jnp.result_type(a)) for a in jax.tree_util.tree_leaves((inputs, fixed, init))))
     start = time.perf_counter()
     cached = lookup(cache_key)
     if cached is None:
@@ -359,13 +368,13 @@ def fit_svi(
         else:
             # an autoguide records its prototype trace on first call: initialise eagerly
             init_fn = partial(_eager_init, svi)
-        state = init_fn(raw_key(key), data, fixed, init)
-        chunk = jax.jit(run_chunk).lower(state, data, fixed).compile()
+        state = init_fn(raw_key(key), inputs, fixed, init)
+        chunk = jax.jit(run_chunk).lower(state, inputs, fixed).compile()
         cached = (svi, init_fn, chunk)
         remember(cache_key, cached)
     else:
         svi, init_fn, chunk = cached
-        state = init_fn(raw_key(key), data, fixed, init)
+        state = init_fn(raw_key(key), inputs, fixed, init)
     rate = float(learning_rate)
     state = jax.block_until_ready(_with_rate(state, rate))
     compile_seconds = time.perf_counter() - start
@@ -378,7 +387,7 @@ def fit_svi(
     previous = None  # mean loss of the previous chunk
     previous_var = None  # variance of the mean loss of the previous chunk
     while len(losses) * window < num_steps:
-        state, chunk_loss, average = chunk(state, data, fixed)
+        state, chunk_loss, average = chunk(state, inputs, fixed)
         chunk_loss = np.asarray(chunk_loss)
         losses.append(chunk_loss)
         finite = chunk_loss[np.isfinite(chunk_loss)]

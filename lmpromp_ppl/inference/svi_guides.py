@@ -51,7 +51,7 @@ def meanfield_guide(data: ModelData, hyper: Hyperparameters, fixed: Mapping | No
     """
     if fixed:
         raise LmprompError("the meanfield guide does not support fixed sites")
-    num_demos, _, num_weights = data.psi.shape
+    num_demos, num_weights = data.num_demos, data.num_weights  # ModelData or SharedDesign
     num_latent = hyper.latent_dim
     eye_d = jnp.eye(num_weights)
     eye_v = jnp.eye(num_latent)

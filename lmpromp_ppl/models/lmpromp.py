@@ -29,6 +29,7 @@ This module also holds the data checks shared by every model of
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -38,9 +39,11 @@ import numpyro
 import numpyro.distributions as dist
 from jax import Array
 
-from lmpromp_ppl.data.core import ModelData, PhaseData
+from lmpromp_ppl.data.core import ModelData, PhaseData, SharedDesign
 from lmpromp_ppl.errors import DataError
 from lmpromp_ppl.models.hyper import Hyperparameters
+
+_LOG_2PI = math.log(2.0 * math.pi)
 
 __all__ = [
     "lmpromp_model", "MaskedObservations", "masked_observations", "observation_precision", "observe_y", "global_priors",
@@ -133,8 +136,11 @@ def lmpromp_model(data: ModelData, hyper: Hyperparameters, observed: bool = True
     hyper : hyperparameters (precisions; Gamma shape/rate)
     observed : condition on ``data.y`` (True) or sample ``y`` (prior predictive)
     """
-    prepared = masked_observations(data)
-    num_demos, _, num_weights = prepared.psi.shape
+    shared = isinstance(data, SharedDesign)
+    if shared and not observed:
+        raise DataError("simulating demonstrations needs their design: pass ModelData or PhaseData")
+    prepared = None if shared else masked_observations(data)
+    num_demos, num_weights = (data.num_demos, data.num_weights) if shared else prepared.psi.shape[::2]
     hyper.validate_for(num_weights)
     num_latent = hyper.latent_dim
 
@@ -147,7 +153,22 @@ def lmpromp_model(data: ModelData, hyper: Hyperparameters, observed: bool = True
         w = numpyro.sample(
             "w", dist.Normal(b + h @ M.T, jnp.sqrt(1.0 / alpha)).to_event(1)
         )
-        observe_y(prepared, w, beta, observed)
+        if shared:
+            numpyro.factor("y", shared_log_likelihood(data, w, beta))
+        else:
+            observe_y(prepared, w, beta, observed)
+
+
+def shared_log_likelihood(stats: SharedDesign, w: Array, beta) -> Array:
+    r"""Per demonstration :math:`\log\mathcal N(\mathbf y_i | \Psi\mathbf w_i, \beta^{-1}\mathbf I_n)` from shared-design statistics.
+
+    :math:`\|\mathbf y_i - \Psi\mathbf w_i\|^2 = \mathbf y_i^T\mathbf y_i - 2\mathbf w_i'^T\mathbf c_i'
+    + \mathbf w_i'^T\mathrm{diag}(\mathbf g)\mathbf w_i'` with :math:`\mathbf w_i' = \mathbf U^T\mathbf w_i`
+    (:class:`~lmpromp_ppl.data.core.SharedDesign`); ``w`` is (L, d), the result (L,).
+    """
+    rotated = w @ stats.rotation
+    residual = stats.sq - 2.0 * jnp.sum(rotated * stats.cross, axis=-1) + jnp.sum(stats.eig * rotated**2, axis=-1)
+    return 0.5 * stats.count * (jnp.log(beta) - _LOG_2PI) - 0.5 * beta * residual
 
 
 def global_priors(hyper: Hyperparameters, num_weights: int, offset: bool = True):

@@ -16,6 +16,7 @@ import inspect
 from functools import partial
 from typing import Callable
 
+from lmpromp_ppl.data.core import ModelData, PhaseData, SharedDesign, as_float64, shared_design
 from lmpromp_ppl.errors import LmprompError
 from lmpromp_ppl.models.collapsed import (
     lmpromp_collapsed_model,
@@ -27,7 +28,9 @@ from lmpromp_ppl.models.lmpromp import lmpromp_model
 from lmpromp_ppl.models.mixture import mixture_model
 from lmpromp_ppl.models.promp import promp_model
 
-__all__ = ["MODEL_NAMES", "COLLAPSE_CHOICES", "check_model", "resolve_collapse", "model_function", "get_model"]
+__all__ = [
+    "MODEL_NAMES", "COLLAPSE_CHOICES", "check_model", "resolve_collapse", "model_function", "model_inputs", "get_model",
+]
 
 #: The models of docs/cli.md.
 MODEL_NAMES = ("promp", "lmpromp", "mixture")
@@ -82,6 +85,26 @@ def model_function(model_name: str, collapsed: str) -> Callable[..., None]:
     if collapse == "whb":
         return lmpromp_offset_collapsed_model
     return partial(_COLLAPSED[model_name], collapse_h=collapse == "wh")
+
+
+def model_inputs(model_name: str, collapsed: str, data: ModelData | PhaseData) -> ModelData | SharedDesign:
+    """The form of concrete model inputs that the declaration evaluates fastest, as float64.
+
+    The full LMProMP and the collapsed LMProMP and mixture (``"w"``, ``"wh"``) take the
+    :class:`~lmpromp_ppl.data.core.SharedDesign` statistics when every
+    demonstration has the same fully observed design (O(L d V) per evaluation);
+    everything else takes the dense :class:`~lmpromp_ppl.data.core.ModelData`.
+    Both forms give the same log density (``tests/test_data_compact.py``).
+    Call it once, outside compiled code (the check looks at the values).
+    """
+    model_name = check_model(model_name)
+    collapse = resolve_collapse(model_name, collapsed)
+    data = as_float64(data)
+    if (model_name in ("lmpromp", "mixture") and collapse in ("w", "wh")) or (model_name, collapse) == ("lmpromp", "none"):
+        shared = shared_design(data)
+        if shared is not None:
+            return shared
+    return data.dense()
 
 
 def get_model(name: str, collapsed: bool = False, **options) -> Callable[..., None]:
