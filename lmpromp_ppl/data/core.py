@@ -24,7 +24,8 @@ from lmpromp_ppl.basis import DEFAULT_WIDTH, rbf_basis
 from lmpromp_ppl.errors import DataError
 
 __all__ = [
-    "Demonstrations", "Scaling", "ModelData", "PhaseData", "SharedDesign", "as_float64", "shared_design",
+    "Demonstrations", "Scaling", "ModelData", "PhaseData", "SharedDesign", "as_float64", "gram_eigenbasis",
+    "shared_design",
     "standardise", "model_data",
 ]
 
@@ -351,38 +352,54 @@ class SharedDesign(NamedTuple):
         return self.cross.shape[1]
 
 
+def gram_eigenbasis(block: Array, num_dofs: int = 1) -> tuple[Array, Array]:
+    r"""The eigenbasis of the Gram matrix :math:`\mathbf I_D \otimes \mathbf B^T\mathbf B` of a design.
+
+    ``block`` is the single-DoF basis :math:`\Phi` (T, J) of :class:`PhaseData` with
+    ``num_dofs = D``, or a whole design matrix :math:`\Psi` (S, d) with ``num_dofs = 1``.
+    One eigendecomposition of :math:`\mathbf B^T\mathbf B` gives :math:`\mathbf U = \mathbf I_D
+    \otimes \mathbf U_B` and the eigenvalues (clipped at 0) repeated D times.  JAX, so it can
+    be traced (CAVI's statistics and :func:`shared_design` both use it).
+
+    Returns
+    -------
+    rotation : (D J, D J) orthogonal; eig : (D J,)
+    """
+    block = jnp.asarray(block, dtype=jnp.float64)
+    eig, basis = jnp.linalg.eigh(block.T @ block)
+    return jnp.kron(jnp.eye(num_dofs), basis), jnp.tile(jnp.maximum(eig, 0.0), num_dofs)
+
+
 def shared_design(data: "ModelData | PhaseData") -> SharedDesign | None:
     """The :class:`SharedDesign` statistics of concrete model inputs, or None when the design is not shared.
 
     None when the demonstrations' designs differ or any entry is padded or
-    missing; the declarations then use the dense form.  Computed in float64
-    with NumPy (an eigendecomposition of J x J per DoF for :class:`PhaseData`,
-    of d x d for :class:`ModelData`).
+    missing; the declarations then use the dense form.  Computed in float64 by
+    :func:`gram_eigenbasis`, as CAVI's shared path computes its rotation (one J x J
+    eigendecomposition for :class:`PhaseData`, d x d for :class:`ModelData`).
     """
     if isinstance(data, SharedDesign):
         return data
     if not data.shares_psi():
         return None
     if isinstance(data, PhaseData):
-        phi = np.asarray(data.phi, dtype=np.float64)[0]
-        values = np.asarray(data.values, dtype=np.float64)
-        eig_phi, u_phi = np.linalg.eigh(phi.T @ phi)
+        phi = jnp.asarray(data.phi, dtype=jnp.float64)[0]
+        values = jnp.asarray(data.values, dtype=jnp.float64)
         num_dofs = values.shape[2]
-        rotation = np.kron(np.eye(num_dofs), u_phi)
-        eig = np.tile(np.clip(eig_phi, 0.0, None), num_dofs)
+        rotation, eig = gram_eigenbasis(phi, num_dofs)
         # Psi^T y_i, block k = Phi^T y_i[:, k]; rotated block-wise by U_phi
-        cross = np.einsum("tj,ltk->lkj", phi @ u_phi, values).reshape(values.shape[0], -1)
-        sq = np.sum(values**2, axis=(1, 2))
-        count = np.full(values.shape[0], values.shape[1] * num_dofs, dtype=np.float64)
+        u_phi = rotation[: phi.shape[1], : phi.shape[1]]
+        cross = jnp.einsum("tj,ltk->lkj", phi @ u_phi, values).reshape(values.shape[0], -1)
+        sq = jnp.sum(values**2, axis=(1, 2))
+        count = jnp.full(values.shape[0], values.shape[1] * num_dofs, dtype=jnp.float64)
     else:
-        psi = np.asarray(data.psi, dtype=np.float64)[0]
-        y = np.asarray(data.y, dtype=np.float64)
-        eig, rotation = np.linalg.eigh(psi.T @ psi)
-        eig = np.clip(eig, 0.0, None)
+        psi = jnp.asarray(data.psi, dtype=jnp.float64)[0]
+        y = jnp.asarray(data.y, dtype=jnp.float64)
+        rotation, eig = gram_eigenbasis(psi)
         cross = y @ (psi @ rotation)
-        sq = np.sum(y**2, axis=1)
-        count = np.full(y.shape[0], y.shape[1], dtype=np.float64)
-    return SharedDesign(*(jnp.asarray(a, dtype=jnp.float64) for a in (rotation, eig, cross, sq, count)))
+        sq = jnp.sum(y**2, axis=1)
+        count = jnp.full(y.shape[0], y.shape[1], dtype=jnp.float64)
+    return SharedDesign(rotation, eig, cross, sq, count)
 
 
 def model_data(

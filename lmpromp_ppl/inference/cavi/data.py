@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from lmpromp_ppl.data.core import ModelData, PhaseData
+from lmpromp_ppl.data.core import ModelData, PhaseData, gram_eigenbasis
 from lmpromp_ppl.errors import DataError
 
 __all__ = [
@@ -131,8 +131,7 @@ def sufficient_statistics(data: ModelData | PhaseData, shared_psi: bool | None =
     y_sq = jnp.sum(y**2, axis=1)
     num_obs = jnp.sum(mask, axis=1)
     if shared_psi:
-        eigvals, basis = jnp.linalg.eigh(psi[0].T @ psi[0])
-        gram: DemoGrams | SharedGram = SharedGram(basis, jnp.maximum(eigvals, 0.0))
+        gram: DemoGrams | SharedGram = SharedGram(*gram_eigenbasis(psi[0]))
     else:
         gram = DemoGrams(jnp.einsum("isd,is,ise->ide", psi, mask, psi))
     return CaviData(psi_t_y, y_sq, num_obs, gram)
@@ -158,9 +157,7 @@ def _phase_statistics(data: PhaseData, shared_psi: bool) -> CaviData:
     y_sq = jnp.sum(values**2, axis=(1, 2))
     num_obs = jnp.sum(observed, axis=(1, 2))
     if shared_psi:
-        eigvals, basis = jnp.linalg.eigh(phi[0].T @ phi[0])
-        return CaviData(psi_t_y, y_sq, num_obs, SharedGram(
-            jnp.kron(jnp.eye(D), basis), jnp.tile(jnp.maximum(eigvals, 0.0), D)))
+        return CaviData(psi_t_y, y_sq, num_obs, SharedGram(*gram_eigenbasis(phi[0], D)))
     blocks = jnp.einsum("itj,itk,itl->ikjl", jnp.broadcast_to(phi, (L,) + phi.shape[1:]), observed,
                         jnp.broadcast_to(phi, (L,) + phi.shape[1:]))  # (L, D, J, J)
     eye = jnp.eye(D, dtype=blocks.dtype)
