@@ -89,6 +89,8 @@ def test_metrics_json_follows_the_contract(report_dir):
     assert np.isfinite(cavi["elbo"]) and "psis_khat" in cavi
     # CAVI's log q is available, so k-hat is a number (mean-field q in ~100 dims: typically large)
     assert cavi["psis_khat"] is not None and cavi["psis_khat_note"] == ""
+    # numpyro's Pareto fit of the same ratios cross-checks the arviz-stats one
+    assert cavi["psis_khat"] == pytest.approx(cavi["psis_khat_numpyro"], abs=0.05)
     assert set(cavi["vs_nuts"]) == SIX
     for q, summary in cavi["vs_nuts"].items():
         assert set(summary) == FOUR, q
@@ -141,7 +143,7 @@ def test_unknown_dataset_exits_2(tmp_path, capsys):
 
 @pytest.mark.slow
 def test_compare_with_svi_guides_and_numpyro_khat_cross_check(tmp_path):
-    """All three SVI guides: k-hat from arviz-stats and numpyro's psis_diagnostic are both computed."""
+    """All three SVI guides: k-hat from the Pareto fits of arviz-stats and numpyro are both computed."""
     out = tmp_path / "svi"
     assert main(["compare", DATASET, "--engines", "cavi,svi,nuts", "--out", str(out), "--quiet", "--steps", "2000",
                  *TINY]) == 0

@@ -1,5 +1,7 @@
 """SVI engine (lmpromp_ppl.inference.svi): CAVI's objective, stopping rule, automatic guides."""
 
+import warnings
+
 import numpy as np
 import pytest
 import jax
@@ -134,6 +136,19 @@ def test_autonormal_returns_contract_draws(data, hyper):
         "b": (9, d), "lam": (9, 2), "M": (9, d, 2), "alpha": (9,), "h": (9, num_demos, 2), "w": (9, num_demos, d)
     }
     assert all(np.all(np.isfinite(v)) for v in draws.values())
+    # the importance ratios of the k-hat are those of numpyro's psis_diagnostic for the same key
+    # (the same particles, through numpyro's own evaluation), so the Pareto fits agree exactly
+    from numpyro.infer import psis_diagnostic
+
+    from lmpromp_ppl.diagnostics.metrics import numpyro_khat, pareto_khat
+
+    key = jax.random.key(6)
+    log_ratio, (model, guide, params, args) = fit.importance_log_ratios(key, 300)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        theirs = psis_diagnostic(key, params, model, guide, *args, num_particles=300)
+    assert numpyro_khat(log_ratio) == pytest.approx(theirs, abs=1e-9)
+    assert pareto_khat(log_ratio)[0] == pytest.approx(theirs, abs=0.05)
 
 
 def test_lowrank_recovers_exact_gaussian_posterior(data, hyper):

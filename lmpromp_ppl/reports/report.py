@@ -154,8 +154,8 @@ def write_report(out: Path, metrics: dict, results: dict, details: dict, demos) 
                      _fmt((m.get("joint") or {}).get("wasserstein_joint")), _fmt((m.get("joint") or {}).get("kl_p_q"))])
     blocks.append(Table(["engine", "seconds", "compile s", "ELBO", "Pareto k-hat", "k-hat (numpyro)",
                          "joint W1", "KL(NUTS||VI)"], rows,
-                        caption="Seconds exclude compilation. k-hat (numpyro): numpyro's psis_diagnostic, "
-                                "a cross-check for SVI."))
+                        caption="Seconds exclude compilation. k-hat (numpyro): numpyro's generalized Pareto fit "
+                                "of the same importance ratios, a cross-check of the arviz-stats fit."))
     warned = [f"{e}: {w}" for e, m in engines.items() for w in m.get("warnings", [])]
     if warned:
         blocks.append(Alert("engine warnings (their results may not have converged): " + "; ".join(warned) + "."))

@@ -116,12 +116,14 @@ def _sample(key: Array, state: CaviState, gammas: Array, num_draws: int, learned
     return draws
 
 
+@jax.jit
 def log_q(state: CaviState, draws: dict[str, Array]) -> Array:
     r"""log q of draws (leading draw axis, the sites of :func:`sample_q`), active components only.
 
     Every factor of the family: q(w_i), q(h_ik), q(b_k), q(M_k) (column- or
     row-wise), q(alpha_k), q(lam_k), q(beta) when learned, and for the mixture
     q(pi) and q(z).  Used for PSIS k-hat (:mod:`lmpromp_ppl.diagnostics.metrics`).
+    Compiled as one program (op by op it took 5 s of a compare report).
     """
     import numpyro.distributions as dist
 
