@@ -111,23 +111,23 @@ def _check_pair(q: np.ndarray, p: np.ndarray) -> None:
 def wasserstein_marginals(q: np.ndarray, p: np.ndarray) -> np.ndarray:
     r"""One-dimensional :math:`W_1` between the marginals of two draw sets, every column at once.
 
-    :math:`W_1 = \int |F_q(x) - F_p(x)|\,dx`: sort the pooled draws of each
-    column; between consecutive pooled values the difference of the empirical
-    CDFs is the running sum of :math:`+1/n_q` (a draw of q) and :math:`-1/n_p`
-    (a draw of p).  Equal to :func:`scipy.stats.wasserstein_distance` column by
-    column, in one vectorised pass (the per-column loop took 15 s of a compare
-    report with 8000 reference draws).
+    :math:`W_1 = \int_0^1 |F_q^{-1}(u) - F_p^{-1}(u)|\,du`.  The empirical
+    quantile functions are steps that change only at :math:`u = i/n_q` and
+    :math:`u = j/n_p`, the same for every column; so each column needs only its
+    two sorted draw sets, read at one pair of index arrays.  Equal to
+    :func:`scipy.stats.wasserstein_distance` column by column (a test); the
+    per-column loop took 15 s of a compare report with 8000 reference draws.
 
     q : (n_q, E), p : (n_p, E) -> (E,)
     """
-    q = np.asarray(q, dtype=float)
-    p = np.asarray(p, dtype=float)
-    pooled = np.concatenate([q, p], axis=0)
-    order = np.argsort(pooled, axis=0, kind="stable")
-    values = np.take_along_axis(pooled, order, axis=0)
-    steps = np.where(order < q.shape[0], 1.0 / q.shape[0], -1.0 / p.shape[0])
-    gap = np.cumsum(steps, axis=0)[:-1]
-    return np.sum(np.abs(gap) * np.diff(values, axis=0), axis=0)
+    q = np.sort(np.ascontiguousarray(np.asarray(q, dtype=float).T), axis=1)
+    p = np.sort(np.ascontiguousarray(np.asarray(p, dtype=float).T), axis=1)
+    n, m = q.shape[1], p.shape[1]
+    steps = np.union1d(np.arange(n + 1) / n, np.arange(m + 1) / m)
+    middle = (steps[:-1] + steps[1:]) / 2.0
+    i = np.minimum((middle * n).astype(int), n - 1)
+    j = np.minimum((middle * m).astype(int), m - 1)
+    return np.abs(q[:, i] - p[:, j]) @ np.diff(steps)
 
 
 def compare_marginals(q: np.ndarray, p: np.ndarray, prob: float = 0.9) -> MarginalComparison:
