@@ -65,12 +65,15 @@ def reporter(progress, total: int, description: str, label: str = "elbo"):
 def line_reporter(progress, label: str, unit: str = "step", value: str = "mean loss"):
     """A callback ``(done, value) -> None`` that prints one line per report to stderr, or None.
 
-    For engines whose reports are rare (SVI's chunks): lines read well in a log
-    too.  ``progress`` is the user's callable (used as it is) or a bool.
+    For engines whose reports are rare (SVI's chunks, one line per chunk
+    instead of a bar that redraws itself).  ``progress`` is the user's callable
+    (used as it is) or a bool; True prints only on a terminal, as
+    :func:`show_progress_bars` decides: a log keeps the commands' one line per
+    stage, not one per chunk.
     """
     if callable(progress):
         return progress
-    if not progress:
+    if not show_progress_bars(bool(progress)):
         return None
 
     def report(done: int, current: float) -> None:

@@ -12,7 +12,7 @@ import pytest
 import xarray as xr
 
 import lmpromp_ppl as lp
-from lmpromp_ppl._progress import show_progress_bars
+from lmpromp_ppl._progress import line_reporter, show_progress_bars
 from lmpromp_ppl.cli import main
 from lmpromp_ppl.reports.render import format_ess, format_number, format_rhat
 
@@ -191,6 +191,16 @@ def test_progress_bars_only_on_a_terminal(monkeypatch, tmp_path, capsys):
     terminal.truncate(0)
     assert main(["fit", DATASET, *SMALL, "--max-iter", "2", "--out", str(tmp_path / "quiet"), "--quiet"]) == 0
     assert terminal.getvalue() == ""
+
+
+def test_chunk_lines_only_on_a_terminal(monkeypatch):
+    assert line_reporter(True, "svi_x") is None  # a log keeps the per-stage lines only
+    mine = lambda done, value: None  # noqa: E731
+    assert line_reporter(mine, "svi_x") is mine and line_reporter(False, "svi_x") is None
+    terminal = _Terminal()
+    monkeypatch.setattr(sys, "stderr", terminal)
+    line_reporter(True, "svi_x")(500, -1.25)
+    assert terminal.getvalue() == "svi_x: step 500, mean loss -1.25\n"
 
 
 def test_report_numbers_are_rounded():

@@ -203,19 +203,31 @@ class SviResult(NamedTuple):
             raise LmprompError(f"num_draws must be >= 1, got {num_draws}")
         model, guide = make_guide(ctx.guide, ctx.model_name, ctx.data, ctx.hyper, collapsed=ctx.collapse,
                                   rank=ctx.rank, fixed_names=tuple(sorted(ctx.fixed)))
-        key_q, key_cond = jax.random.split(raw_key(key))
-        trace = handlers.trace(handlers.seed(model, 0)).get_trace(ctx.data, ctx.fixed)
-        sites = [n for n, s in trace.items()
-                 if (s["type"] == "sample" and not s["is_observed"]) or s["type"] == "deterministic"]
-        params = {k: jnp.asarray(v) for k, v in self.params.items()}
-        predictive = Predictive(model, guide=guide, params=params, num_samples=num_draws, return_sites=sites)
-        # the model evaluates its fastest inputs (shared-design statistics where possible)
-        draws = dict(predictive(key_q, self._inputs(), ctx.fixed))
+        fixed = ctx.fixed
+
+        def site_values():  # traced abstractly: the site names without running the model
+            trace = handlers.trace(handlers.seed(model, 0)).get_trace(ctx.data, fixed)
+            return {n: s["value"] for n, s in trace.items()
+                    if (s["type"] == "sample" and not s["is_observed"]) or s["type"] == "deterministic"}
+
+        sites = sorted(jax.eval_shape(site_values))
         collapse = "none" if ctx.guide == "meanfield" else ctx.collapse
-        if collapse != "none":
-            flat = dict(draws)
-            flat.update({k: jnp.broadcast_to(v, (num_draws,) + v.shape) for k, v in ctx.fixed.items()})
-            draws.update(draw_integrated_sites(ctx.model_name, collapse, key_cond, ctx.data, ctx.hyper, flat))
+
+        def draw(key, params, inputs, data, fixed):
+            # one compiled program for the guide's draws and the integrated sites:
+            # op by op, each distinct operation of the model would compile on its own
+            key_q, key_cond = jax.random.split(key)
+            predictive = Predictive(model, guide=guide, params=params, num_samples=num_draws, return_sites=sites)
+            # the model evaluates its fastest inputs (shared-design statistics where possible)
+            draws = dict(predictive(key_q, inputs, fixed))
+            if collapse != "none":
+                flat = dict(draws)
+                flat.update({k: jnp.broadcast_to(v, (num_draws,) + v.shape) for k, v in fixed.items()})
+                draws.update(draw_integrated_sites(ctx.model_name, collapse, key_cond, data, ctx.hyper, flat))
+            return draws
+
+        params = {k: jnp.asarray(v) for k, v in self.params.items()}
+        draws = jax.jit(draw)(raw_key(key), params, self._inputs(), ctx.data, fixed)
         return {k: np.asarray(v) for k, v in draws.items()}
 
 
