@@ -375,6 +375,25 @@ def _check_positive_int(name: str, value, minimum: int = 1) -> int:
     return int(value)
 
 
+def _latent_shapes(model_name: str, collapse: str, data, hyper) -> dict[str, tuple[int, ...]]:
+    """The shape of every latent site of the declared model on ``data``.
+
+    Traced abstractly (no model evaluation, nothing compiled); when tracing
+    fails, the model runs once on the concrete data so that shape and value
+    errors surface with their own message.
+    """
+    model = model_function(model_name, collapse)
+
+    def latent_values():
+        trace = handlers.trace(handlers.seed(model, 0)).get_trace(data, hyper)
+        return {n: s["value"] for n, s in trace.items() if s["type"] == "sample" and not s["is_observed"]}
+
+    try:
+        return {k: tuple(v.shape) for k, v in jax.eval_shape(latent_values).items()}
+    except Exception:  # noqa: BLE001 - rerun concretely for the model's own message
+        return {k: tuple(np.shape(v)) for k, v in latent_values().items()}
+
+
 def fit_nuts(
     model_name: str,
     data: ModelData,
@@ -458,28 +477,26 @@ def fit_nuts(
     data = original.dense()
     fixed = {k: jnp.asarray(v, dtype=jnp.float64) for k, v in (fixed or {}).items()}
     init_values = {k: jnp.asarray(v, dtype=jnp.float64) for k, v in (init_values or {}).items()}
-    # run the model once on the concrete data: shape and value errors surface
-    # here with their own message, not inside tracing
-    trace = handlers.trace(handlers.seed(model_function(model_name, collapse), 0)).get_trace(data, hyper)
-    latent = {n for n, s in trace.items() if s["type"] == "sample" and not s["is_observed"]}
+    shapes = _latent_shapes(model_name, collapse, data, hyper)
+    latent = set(shapes)
     start_info = None
     if init == "cavi":
         starts, start_info = cavi_start(
             model_name, original, hyper, jax.random.fold_in(raw_key(key), 7), num_chains,
             sites=tuple(sorted((latent - set(fixed)) & set(START_SITES))),
         )
-        given = {k: jnp.broadcast_to(v, (num_chains,) + trace[k]["value"].shape)
-                 if k in trace and v.shape == trace[k]["value"].shape else v for k, v in init_values.items()}
+        given = {k: jnp.broadcast_to(v, (num_chains,) + shapes[k])
+                 if k in shapes and v.shape == shapes[k] else v for k, v in init_values.items()}
         init_values = {**{k: jnp.asarray(v) for k, v in starts.items()}, **given}
     per_chain = bool(init_values) and all(
-        name in trace and v.shape == (num_chains,) + trace[name]["value"].shape for name, v in init_values.items()
+        name in shapes and v.shape == (num_chains,) + shapes[name] for name, v in init_values.items()
     )
     for what, values in (("fixed", fixed), ("init_values", init_values)):
         unknown = set(values) - latent
         if unknown:
             raise LmprompError(f"{what} names unknown sites {sorted(unknown)}; latent sites: {sorted(latent)}")
         for name, value in values.items():
-            expected = trace[name]["value"].shape
+            expected = shapes[name]
             if value.shape != expected and not (what == "init_values" and per_chain):
                 raise LmprompError(
                     f"{what}[{name!r}] has shape {value.shape}, expected {expected}"

@@ -128,6 +128,16 @@ class SviContext(NamedTuple):
     data: ModelData
     hyper: Hyperparameters
     fixed: dict
+    #: the fit's own (model, guide) pair: an automatic guide in it has already
+    #: recorded its prototype trace, so drawing from it runs no eager model pass
+    programs: tuple | None = None
+
+    def model_and_guide(self):
+        """The (model, guide) of the fit, or a fresh pair from :func:`make_guide`."""
+        if self.programs is not None:
+            return self.programs
+        return make_guide(self.guide, self.model_name, self.data, self.hyper, collapsed=self.collapse,
+                          rank=self.rank, fixed_names=tuple(sorted(self.fixed)))
 
 
 class SviResult(NamedTuple):
@@ -167,14 +177,15 @@ class SviResult(NamedTuple):
         from numpyro.infer.elbo import get_importance_log_probs
 
         ctx = self.context
-        model, guide = make_guide(ctx.guide, ctx.model_name, ctx.data, ctx.hyper, collapsed=ctx.collapse,
-                                  rank=ctx.rank, fixed_names=tuple(sorted(ctx.fixed)))
+        model, guide = ctx.model_and_guide()
         params = {k: jnp.asarray(v) for k, v in self.params.items()}
         args = (self._inputs(), ctx.fixed)
-        # An autoguide sets itself up on its first call by running the model under the
-        # enclosing seed handler, which would shift the particles of that first call;
-        # set it up here so every call with a key draws the same particles.
-        get_importance_log_probs(seed(model, 0), seed(guide, 0), args, {}, params)
+        if ctx.programs is None and ctx.guide != "meanfield":
+            # An autoguide sets itself up on its first call by running the model under the
+            # enclosing seed handler, which would shift the particles of that first call;
+            # set it up here so every call with a key draws the same particles (the fit's
+            # own guide, in ``programs``, is set up already).
+            get_importance_log_probs(seed(model, 0), seed(guide, 0), args, {}, params)
 
         def one(k):
             k_model, k_guide = jax.random.split(k)
@@ -201,8 +212,7 @@ class SviResult(NamedTuple):
         num_draws = int(num_draws)
         if num_draws < 1:
             raise LmprompError(f"num_draws must be >= 1, got {num_draws}")
-        model, guide = make_guide(ctx.guide, ctx.model_name, ctx.data, ctx.hyper, collapsed=ctx.collapse,
-                                  rank=ctx.rank, fixed_names=tuple(sorted(ctx.fixed)))
+        model, guide = ctx.model_and_guide()
         fixed = ctx.fixed
 
         def site_values():  # traced abstractly: the site names without running the model
@@ -421,7 +431,7 @@ def fit_svi(
     if not converged:
         warnings.warn(f"svi_{guide} stopped at its step limit ({num_steps}) before the "
                       f"smoothed loss changed by less than {stop_tol}", ConvergenceWarning, stacklevel=2)
-    params = {k: np.asarray(v) for k, v in svi.constrain_fn(average).items()}
+    params = {k: np.asarray(v) for k, v in jax.jit(svi.constrain_fn)(average).items()}
     loss_trace = np.concatenate(losses)
     options = {"guide": guide, "collapsed": "none" if guide == "meanfield" else collapse,
                "num_steps": int(num_steps), "learning_rate": float(learning_rate),
@@ -429,6 +439,6 @@ def fit_svi(
                "num_particles": int(num_particles), "rank": rank, "stop_tol": float(stop_tol),
                "window": int(window), "plateau_reductions": int(plateau_reductions),
                "plateau_factor": float(plateau_factor), "final_learning_rate": rate, "fixed": sorted(fixed)}
-    context = SviContext(model_name, guide, collapse, rank, data, hyper, fixed)
+    context = SviContext(model_name, guide, collapse, rank, data, hyper, fixed, (svi.model, svi.guide))
     return SviResult(params, loss_trace, int(loss_trace.shape[0]), converged, seconds, compile_seconds,
                      options, context)
