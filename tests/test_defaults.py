@@ -273,3 +273,11 @@ def test_fit_command_says_when_the_fit_is_degenerate(tmp_path, capsys):
     assert any("carried by M h" in w for w in summary["warnings"])
     assert main(args + ["--out", str(tmp_path / "b"), "--quiet"]) == 0
     assert capsys.readouterr().out == ""
+
+
+def test_nuts_datasets_all_is_every_dataset_of_the_table():
+    from lmpromp_ppl.cli.real_data import nuts_names
+
+    names = ["lasa:Angle?every=10", "gunpoint:train"]
+    assert nuts_names("all", names) == names
+    assert nuts_names(" lasa:Line?every=20 , gunpoint:train", names) == ["lasa:Line?every=20", "gunpoint:train"]

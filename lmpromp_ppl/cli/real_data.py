@@ -20,12 +20,17 @@ def _split(text: str) -> list[str]:
     return [x.strip() for x in text.split(",") if x.strip()]
 
 
+def nuts_names(nuts_datasets: str, names: list[str]) -> list[str]:
+    """The datasets NUTS runs on: ``all`` is every dataset of the table, else the comma-separated list."""
+    return list(names) if nuts_datasets.strip() == "all" else _split(nuts_datasets)
+
+
 @app.command("real-data")
 def real_data_command(
     out: Path = typer.Option(..., "--out", help="Output directory (real-data.md, real-data.json, predictive.png)."),
     datasets: Optional[str] = typer.Option(None, help="Comma-separated dataset strings (default: all 30 LASA shapes, GunPoint, two synthetic sets)."),
     engines: str = typer.Option("cavi,nuts", help="Engines, comma-separated (cavi, nuts, svi_*)."),
-    nuts_datasets: str = typer.Option(_NUTS_DATASETS, "--nuts-datasets", help="The subsample that NUTS runs on (comma-separated)."),
+    nuts_datasets: str = typer.Option(_NUTS_DATASETS, "--nuts-datasets", help="The subsample that NUTS runs on (comma-separated), or all (every dataset of --datasets)."),
     max_folds: int = typer.Option(8, "--max-folds", min=1, help="Held-out demonstrations per dataset (CAVI, SVI)."),
     nuts_folds: int = typer.Option(3, "--nuts-folds", min=1, help="Held-out demonstrations per dataset for NUTS."),
     nuts_chains: int = typer.Option(4, "--nuts-chains", min=1, help="NUTS chains per fit."),
@@ -53,7 +58,8 @@ def real_data_command(
         raise LmprompError(f"unknown engine(s) {', '.join(unknown)}; choose from {', '.join(ENGINES)}")
     from lmpromp_ppl.data import load_dataset
 
-    loaded = {name: load_dataset(name) for name in dict.fromkeys(names + (_split(nuts_datasets) if "nuts" in engine_list else []))}
+    nuts_list = nuts_names(nuts_datasets, names)
+    loaded = {name: load_dataset(name) for name in dict.fromkeys(names + (nuts_list if "nuts" in engine_list else []))}
     previous = None
     if merge:
         import json
@@ -69,7 +75,7 @@ def real_data_command(
     echo = (lambda msg: None) if quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
     rows = []
     for engine in engine_list:
-        subset = _split(nuts_datasets) if engine == "nuts" else names
+        subset = nuts_list if engine == "nuts" else names
         folds = nuts_folds if engine == "nuts" else max_folds
         options = {"num_chains": nuts_chains, "num_warmup": nuts_draws, "num_samples": nuts_draws} \
             if engine == "nuts" else {}
