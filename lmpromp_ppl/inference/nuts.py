@@ -194,7 +194,7 @@ from lmpromp_ppl.inference.compiled import lookup, remember
 from lmpromp_ppl.inference.warm_start import START_SITES, WARM_START_MODELS, cavi_start
 from lmpromp_ppl.models.conditionals import draw_integrated_sites
 from lmpromp_ppl.models.hyper import Hyperparameters
-from lmpromp_ppl.models.registry import model_function, model_inputs, resolve_collapse
+from lmpromp_ppl.models.registry import model_function, model_inputs, resolve_collapse, site_shapes
 
 __all__ = [
     "INIT_CHOICES",
@@ -375,25 +375,6 @@ def _check_positive_int(name: str, value, minimum: int = 1) -> int:
     return int(value)
 
 
-def _latent_shapes(model_name: str, collapse: str, data, hyper) -> dict[str, tuple[int, ...]]:
-    """The shape of every latent site of the declared model on ``data``.
-
-    Traced abstractly (no model evaluation, nothing compiled); when tracing
-    fails, the model runs once on the concrete data so that shape and value
-    errors surface with their own message.
-    """
-    model = model_function(model_name, collapse)
-
-    def latent_values():
-        trace = handlers.trace(handlers.seed(model, 0)).get_trace(data, hyper)
-        return {n: s["value"] for n, s in trace.items() if s["type"] == "sample" and not s["is_observed"]}
-
-    try:
-        return {k: tuple(v.shape) for k, v in jax.eval_shape(latent_values).items()}
-    except Exception:  # noqa: BLE001 - rerun concretely for the model's own message
-        return {k: tuple(np.shape(v)) for k, v in latent_values().items()}
-
-
 def fit_nuts(
     model_name: str,
     data: ModelData,
@@ -477,7 +458,7 @@ def fit_nuts(
     data = original.dense()
     fixed = {k: jnp.asarray(v, dtype=jnp.float64) for k, v in (fixed or {}).items()}
     init_values = {k: jnp.asarray(v, dtype=jnp.float64) for k, v in (init_values or {}).items()}
-    shapes = _latent_shapes(model_name, collapse, data, hyper)
+    shapes = site_shapes(model_function(model_name, collapse), data, hyper)
     latent = set(shapes)
     start_info = None
     if init == "cavi":

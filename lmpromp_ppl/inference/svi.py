@@ -84,7 +84,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array, lax
-from numpyro import handlers
 from numpyro.infer import SVI, Predictive, Trace_ELBO
 from numpyro.optim import _NumPyroOptim
 
@@ -104,7 +103,7 @@ from lmpromp_ppl.inference.svi_guides import (
 from lmpromp_ppl.models.conditionals import draw_integrated_sites
 from lmpromp_ppl.models.hyper import Hyperparameters
 from lmpromp_ppl.models.lmpromp import masked_observations
-from lmpromp_ppl.models.registry import model_inputs, resolve_collapse
+from lmpromp_ppl.models.registry import model_inputs, resolve_collapse, site_shapes
 
 __all__ = [
     "GUIDES",
@@ -215,12 +214,7 @@ class SviResult(NamedTuple):
         model, guide = ctx.model_and_guide()
         fixed = ctx.fixed
 
-        def site_values():  # traced abstractly: the site names without running the model
-            trace = handlers.trace(handlers.seed(model, 0)).get_trace(ctx.data, fixed)
-            return {n: s["value"] for n, s in trace.items()
-                    if (s["type"] == "sample" and not s["is_observed"]) or s["type"] == "deterministic"}
-
-        sites = sorted(jax.eval_shape(site_values))
+        sites = sorted(site_shapes(model, ctx.data, fixed, deterministic=True))
         collapse = "none" if ctx.guide == "meanfield" else ctx.collapse
 
         def draw(key, params, inputs, data, fixed):

@@ -16,6 +16,10 @@ import inspect
 from functools import partial
 from typing import Callable
 
+import jax
+import numpy as np
+from numpyro import handlers
+
 from lmpromp_ppl.data.core import ModelData, PhaseData, SharedDesign, as_float64, shared_design
 from lmpromp_ppl.errors import LmprompError
 from lmpromp_ppl.models.collapsed import (
@@ -30,6 +34,7 @@ from lmpromp_ppl.models.promp import promp_model
 
 __all__ = [
     "MODEL_NAMES", "COLLAPSE_CHOICES", "check_model", "resolve_collapse", "model_function", "model_inputs", "get_model",
+    "site_shapes",
 ]
 
 #: The models of docs/cli.md.
@@ -131,3 +136,22 @@ def get_model(name: str, collapsed: bool = False, **options) -> Callable[..., No
             f"model {name!r} (collapsed={collapsed}) takes no option {unknown}; it takes {sorted(accepted)}"
         )
     return partial(model, **options) if options else model
+
+
+def site_shapes(model: Callable[..., None], *args, deterministic: bool = False) -> dict[str, tuple[int, ...]]:
+    """The shape of every latent site of ``model(*args)`` (and of its deterministic sites, on request).
+
+    Traced abstractly (``jax.eval_shape``: nothing evaluated, nothing compiled);
+    where tracing fails, the model runs once on the concrete arguments so that
+    its own shape and value errors surface with their messages.
+    """
+    def values():
+        trace = handlers.trace(handlers.seed(model, 0)).get_trace(*args)
+        return {n: s["value"] for n, s in trace.items()
+                if (s["type"] == "sample" and not s["is_observed"]) or (deterministic and s["type"] == "deterministic")}
+
+    try:
+        out = jax.eval_shape(values)
+    except Exception:  # noqa: BLE001 - run concretely for the model's own message
+        out = values()
+    return {k: tuple(np.shape(v)) for k, v in out.items()}
