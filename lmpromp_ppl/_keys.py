@@ -9,7 +9,7 @@ purpose tag, so that two seeds give different draws and one seed the same.
 
 from __future__ import annotations
 
-__all__ = ["DRAWS", "POSTERIOR_PREDICTIVE", "PREDICTION", "seed_key", "raw_key"]
+__all__ = ["DRAWS", "POSTERIOR_PREDICTIVE", "PREDICTION", "seed_key", "raw_key", "typed_key"]
 
 #: Purpose tags folded into the seed's key (distinct, so the streams are independent).
 DRAWS = 1
@@ -32,3 +32,17 @@ def raw_key(key):
     if jnp.issubdtype(key.dtype, jax.dtypes.prng_key):
         return jax.random.key_data(key)
     return key
+
+
+def typed_key(key):
+    """A typed key (``jax.random.key``) from either kind; the same random stream as the raw key.
+
+    A compiled function traced with one kind of key compiles again for the other, so the
+    samplers shared by several callers (CAVI's draws from q) are called with typed keys.
+    """
+    import jax
+    import jax.numpy as jnp
+
+    if jnp.issubdtype(key.dtype, jax.dtypes.prng_key):
+        return key
+    return jax.random.wrap_key_data(key)

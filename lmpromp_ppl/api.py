@@ -268,10 +268,12 @@ def _nuts_result(mdata, key, progress, common, options) -> FitResult:
 
 
 def _svi_result(mdata, key, progress, common, options) -> FitResult:
+    from lmpromp_ppl.inference.svi import DRAWS_AFTER_FIT
+
     fit_key, draw_key = jax.random.split(key)
     res = run_engine(common["engine"], common["model"], mdata, common["hyper"], fit_key, progress=progress, **options)
     loss = np.asarray(res.loss_trace)
-    draws = {k: np.asarray(v) for k, v in res.sample(draw_key, 1000).items()}
+    draws = {k: np.asarray(v) for k, v in res.sample(draw_key, DRAWS_AFTER_FIT).items()}
     summary = {
         "elbo": float(-np.mean(loss[-max(1, len(loss) // 20):])),
         "iterations": int(res.num_steps_run),

@@ -18,6 +18,7 @@ from lmpromp_ppl.diagnostics.alignment import (
 )
 from lmpromp_ppl.diagnostics.metrics import (
     compare_marginals,
+    reference_marginals,
     joint_divergences,
     khat_verdict,
     pareto_khat,
@@ -112,6 +113,24 @@ def test_coverage_of_central_interval(gaussian_draws):
     assert abs(comp.coverage[0] - 0.9) < 4 * se[0]
 
 
+
+def test_shared_reference_marginals_change_nothing(gaussian_draws):
+    """Comparing with precomputed reference marginals (sorted once for every engine) gives what the
+    direct formulas give: counts of p inside q's interval, and the sd-scaled differences."""
+    q, p = gaussian_draws
+    q = np.round(q, 1)  # ties between q's quantiles and p's draws
+    p = np.round(p, 1)
+    shared = compare_marginals(q, p, reference=reference_marginals(p))
+    alone = compare_marginals(q, p)
+    for a, b in zip(shared, alone):
+        np.testing.assert_array_equal(a, b)
+    lower, upper = np.quantile(q, [0.05, 0.95], axis=0)
+    np.testing.assert_array_equal(shared.coverage, np.mean((p >= lower) & (p <= upper), axis=0))
+    np.testing.assert_allclose(shared.smd, (q.mean(0) - p.mean(0)) / p.std(0, ddof=1), rtol=1e-12)
+    with pytest.raises(ValueError, match="reference marginals"):
+        compare_marginals(q, p, reference=reference_marginals(p[:100]))
+
+
 def test_summary_keys_and_no_nan():
     rng = np.random.default_rng(1)
     p = rng.standard_normal((500, 3))
@@ -191,6 +210,19 @@ def test_reference_reliability_flags_disagreeing_chains():
 
 
 # ------------------------------------------------------------------ alignment
+def test_procrustes_rotations_equal_scipy_on_noisy_draws():
+    """The batched SVD gives scipy's orthogonal Procrustes solution draw by draw (not only exact rotations)."""
+    from scipy.linalg import orthogonal_procrustes
+
+    rng = np.random.default_rng(11)
+    ref = rng.standard_normal((8, 3))
+    M = ref @ ortho_group.rvs(3, size=6, random_state=12) + 0.3 * rng.standard_normal((6, 8, 3))
+    R = procrustes_rotations(M.reshape(2, 3, 8, 3), ref)
+    assert R.shape == (2, 3, 3, 3)
+    expected = np.stack([orthogonal_procrustes(m, ref)[0] for m in M]).reshape(2, 3, 3, 3)
+    np.testing.assert_allclose(R, expected, atol=1e-12)
+
+
 def test_procrustes_recovers_rotated_and_sign_flipped_M():
     rng = np.random.default_rng(4)
     M = rng.standard_normal((6, 3))

@@ -14,6 +14,7 @@ from lmpromp_ppl.errors import ConvergenceWarning, LmprompError
 from lmpromp_ppl.inference import cavi
 from lmpromp_ppl.inference.cavi import init_state
 from lmpromp_ppl.inference.svi import (
+    DRAWS_AFTER_FIT,
     cavi_state_from_meanfield,
     make_guide,
     meanfield_params_from_cavi,
@@ -149,6 +150,17 @@ def test_autonormal_returns_contract_draws(data, hyper):
         theirs = psis_diagnostic(key, params, model, guide, *args, num_particles=300)
     assert numpyro_khat(log_ratio) == pytest.approx(theirs, abs=1e-9)
     assert pareto_khat(log_ratio)[0] == pytest.approx(theirs, abs=0.05)
+    # a program compiled apart from the call (compare compiles the engines' side by side) gives the same ratios
+    lowered, context = fit.importance_program(300)
+    again, _ = fit.importance_log_ratios(key, 300, (lowered.compile(), context))
+    np.testing.assert_array_equal(again, log_ratio)
+    # the draw program compiled in the background during the fit draws what a program built afresh draws
+    assert 9 not in fit.context.draw_programs and DRAWS_AFTER_FIT in fit.context.draw_programs
+    background = fit.sample(jax.random.key(7), DRAWS_AFTER_FIT)
+    afresh = fit._replace(context=fit.context._replace(draw_programs=None)).sample(jax.random.key(7), DRAWS_AFTER_FIT)
+    assert background.keys() == afresh.keys()
+    for name in background:
+        np.testing.assert_array_equal(background[name], afresh[name])
 
 
 def test_lowrank_recovers_exact_gaussian_posterior(data, hyper):

@@ -21,6 +21,9 @@ from lmpromp_ppl.inference import cavi
 from lmpromp_ppl.models.hyper import Hyperparameters
 from lmpromp_ppl.results import package_version
 
+#: Fits timed (within 1 s) when one takes under 0.1 s: the best of these is ``fit_s``.
+SHORT_FIT_REPEATS = 25
+
 __all__ = ["bench_cavi", "bench_svi", "bench_nuts", "bench_batch", "bench_promp_baseline"]
 
 
@@ -71,14 +74,20 @@ def bench_cavi(row: RowSpec, data: cavi.CaviData, config: BenchConfig, peak_rate
             out = jax.block_until_ready(run_fixed(*fixed_args(sweeps)))
             sweep_s = min(sweep_s, (time.perf_counter() - start) / max(int(out.iterations), 1))
     if sweep_s * config.max_iter <= config.cavi_budget_s:
-        # the fit as cavi.fit runs it: one compiled while_loop, best of `repeats`
-        best = None
-        for _ in range(config.repeats):
+        # the fit as cavi.fit runs it: one compiled while_loop, best of `repeats`; a fit of a few
+        # milliseconds is repeated up to SHORT_FIT_REPEATS times within 1 s, as its time varies by a
+        # factor of 2-3 from run to run with the machine's other work (timeit's best-of rule)
+        best, times = None, []
+        while True:
             result = cavi.run(state0, data, hyper_arr, config.tol, config.max_iter)
             compile_s += result.compile_seconds
+            times.append(result.seconds)
             if best is None or result.seconds < best.seconds:
                 best = result
             if result.seconds > 1.0:  # long fits are timed once
+                break
+            short = sum(times) < 1.0 and best.seconds < 0.1
+            if len(times) >= (SHORT_FIT_REPEATS if short else config.repeats):
                 break
         result, trace, fit_s = best, best.elbo_trace, best.seconds
         stopped = "converged" if result.converged else "max_iter"
@@ -86,6 +95,7 @@ def bench_cavi(row: RowSpec, data: cavi.CaviData, config: BenchConfig, peak_rate
     else:
         # too slow for max_iter sweeps within the budget: chunks of `sweeps`, stopped by time
         state, done, fit_s, traces, resume = state0, 0, 0.0, [], cavi.fresh()
+        times = []
         tol_arr = jnp.asarray(config.tol, jnp.float64)
         while True:
             limit = min(sweeps, config.max_iter - done)
@@ -100,6 +110,7 @@ def bench_cavi(row: RowSpec, data: cavi.CaviData, config: BenchConfig, peak_rate
             if bool(result.converged) or done >= config.max_iter or n == 0 or fit_s >= config.cavi_budget_s:
                 break
         trace = np.concatenate(traces)
+        times = [fit_s]
         result = result._replace(iterations=jnp.asarray(done, jnp.int32), converged=bool(result.converged))
         stopped = ("converged" if bool(result.converged) else
                    "max_iter" if done >= config.max_iter else "time budget")
@@ -111,6 +122,8 @@ def bench_cavi(row: RowSpec, data: cavi.CaviData, config: BenchConfig, peak_rate
         "engine": engine,
         "compile_s": compile_s,
         "fit_s": fit_s,
+        "fit_s_median": float(np.median(times)),
+        "fit_repeats": len(times),
         "init_s": init_s,
         "iterations": int(result.iterations),
         "converged": bool(result.converged),
@@ -124,7 +137,8 @@ def bench_cavi(row: RowSpec, data: cavi.CaviData, config: BenchConfig, peak_rate
         "flop_rate": rate,
         "flop_rate_over_matmul": None if rate is None else rate / peak_rate,
         "timing": f"fit_s ({how}): best of {config.repeats} fits from the same start (one when a fit "
-                  f"takes > 1 s), excluding compilation and initialisation; s_per_iteration: best of "
+                  f"takes > 1 s; up to {SHORT_FIT_REPEATS} within 1 s when a fit takes < 0.1 s; fit_s_median "
+                  f"their median), excluding compilation and initialisation; s_per_iteration: best of "
                   f"{config.repeats} runs of {sweeps} sweeps (5 sweeps when {sweeps} would take > 1 s)",
         "budget_s": config.cavi_budget_s,
     }, result.state

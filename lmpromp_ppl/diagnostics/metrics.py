@@ -50,6 +50,8 @@ __all__ = [
     "KHAT_USABLE",
     "flatten_draws",
     "compare_marginals",
+    "ReferenceMarginals",
+    "reference_marginals",
     "wasserstein_marginals",
     "summarise_comparison",
     "joint_divergences",
@@ -108,6 +110,31 @@ def _check_pair(q: np.ndarray, p: np.ndarray) -> None:
         raise ValueError("draws contain NaN or inf")
 
 
+class ReferenceMarginals(NamedTuple):
+    """What :func:`compare_marginals` needs of the reference draws, computed once for every engine compared
+    with them (:func:`reference_marginals`): each column sorted (E, n_p), the means and sds (E,)."""
+
+    sorted: np.ndarray
+    mean: np.ndarray
+    sd: np.ndarray
+
+
+def reference_marginals(p: np.ndarray) -> ReferenceMarginals:
+    """:class:`ReferenceMarginals` of reference draws ``p`` (n_p, E)."""
+    p = np.asarray(p, dtype=float)
+    return ReferenceMarginals(np.sort(np.ascontiguousarray(p.T), axis=1), p.mean(axis=0), p.std(axis=0, ddof=1))
+
+
+def _wasserstein_sorted(q: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """:func:`wasserstein_marginals` of column-sorted draws, (E, n_q) and (E, n_p)."""
+    n, m = q.shape[1], p.shape[1]
+    steps = np.union1d(np.arange(n + 1) / n, np.arange(m + 1) / m)
+    middle = (steps[:-1] + steps[1:]) / 2.0
+    i = np.minimum((middle * n).astype(int), n - 1)
+    j = np.minimum((middle * m).astype(int), m - 1)
+    return np.abs(q[:, i] - p[:, j]) @ np.diff(steps)
+
+
 def wasserstein_marginals(q: np.ndarray, p: np.ndarray) -> np.ndarray:
     r"""One-dimensional :math:`W_1` between the marginals of two draw sets, every column at once.
 
@@ -122,15 +149,11 @@ def wasserstein_marginals(q: np.ndarray, p: np.ndarray) -> np.ndarray:
     """
     q = np.sort(np.ascontiguousarray(np.asarray(q, dtype=float).T), axis=1)
     p = np.sort(np.ascontiguousarray(np.asarray(p, dtype=float).T), axis=1)
-    n, m = q.shape[1], p.shape[1]
-    steps = np.union1d(np.arange(n + 1) / n, np.arange(m + 1) / m)
-    middle = (steps[:-1] + steps[1:]) / 2.0
-    i = np.minimum((middle * n).astype(int), n - 1)
-    j = np.minimum((middle * m).astype(int), m - 1)
-    return np.abs(q[:, i] - p[:, j]) @ np.diff(steps)
+    return _wasserstein_sorted(q, p)
 
 
-def compare_marginals(q: np.ndarray, p: np.ndarray, prob: float = 0.9) -> MarginalComparison:
+def compare_marginals(q: np.ndarray, p: np.ndarray, prob: float = 0.9,
+                      reference: ReferenceMarginals | None = None) -> MarginalComparison:
     """Compare every marginal of q with that of the reference p.
 
     Parameters
@@ -138,6 +161,8 @@ def compare_marginals(q: np.ndarray, p: np.ndarray, prob: float = 0.9) -> Margin
     q : (num_q, E) draws from the approximation
     p : (num_p, E) draws from the reference (NUTS)
     prob : mass of q's central interval used for the coverage
+    reference : :func:`reference_marginals` of ``p``, when several approximations are compared
+        with the same reference (computed here when None)
 
     Returns
     -------
@@ -150,14 +175,20 @@ def compare_marginals(q: np.ndarray, p: np.ndarray, prob: float = 0.9) -> Margin
     _check_pair(q, p)
     if not 0.0 < prob < 1.0:
         raise ValueError(f"prob must lie in (0, 1), got {prob}")
-    sd_p = p.std(axis=0, ddof=1)
+    ref = reference_marginals(p) if reference is None else reference
+    if ref.sorted.shape != p.shape[::-1]:
+        raise ValueError(f"the reference marginals {ref.sorted.shape} are not those of p {p.shape}")
+    q_sorted = np.sort(np.ascontiguousarray(q.T), axis=1)
     sd_q = q.std(axis=0, ddof=1)
-    scale = np.where(sd_p > 0, sd_p, np.nan)
-    smd = (q.mean(axis=0) - p.mean(axis=0)) / scale
+    scale = np.where(ref.sd > 0, ref.sd, np.nan)
+    smd = (q.mean(axis=0) - ref.mean) / scale
     ratio = sd_q / scale
-    w1 = wasserstein_marginals(q, p) / scale
-    lower, upper = np.quantile(q, [(1.0 - prob) / 2.0, (1.0 + prob) / 2.0], axis=0)
-    coverage = np.mean((p >= lower) & (p <= upper), axis=0)
+    w1 = _wasserstein_sorted(q_sorted, ref.sorted) / scale
+    lower, upper = np.quantile(q_sorted, [(1.0 - prob) / 2.0, (1.0 + prob) / 2.0], axis=1)
+    # p's draws inside [lower, upper], counted in its sorted columns
+    inside = [np.searchsorted(col, hi, side="right") - np.searchsorted(col, lo, side="left")
+              for col, lo, hi in zip(ref.sorted, lower, upper)]
+    coverage = np.asarray(inside, dtype=float) / p.shape[0]
     return MarginalComparison(smd, ratio, w1, coverage)
 
 
@@ -421,7 +452,7 @@ def numpyro_khat(log_ratio: np.ndarray) -> float | None:
         return _finite_or_none(float(_psis_khat(log_ratio)))
 
 
-def engine_khat(result, data, key, num_draws: int = 1000) -> dict:
+def engine_khat(result, data, key, num_draws: int = 1000, program=None) -> dict:
     r"""Pareto :math:`\hat k` of a VI :class:`~lmpromp_ppl.results.FitResult` (Yao et al. 2018).
 
     Draws :math:`\theta_s \sim q` afresh and forms :math:`\log p(\theta_s, y) -
@@ -446,6 +477,8 @@ def engine_khat(result, data, key, num_draws: int = 1000) -> dict:
         (used for CAVI; SVI results carry theirs)
     key : jax PRNG key
     num_draws : draws from q (importance particles)
+    program : for ``svi_*``, the compiled importance program and its context
+        (:meth:`~lmpromp_ppl.inference.svi.SviResult.importance_log_ratios`); built when None
 
     Returns ``{"psis_khat", "psis_khat_numpyro", "note"}``; a k-hat that cannot be
     computed is ``None`` and the note says why.
@@ -471,7 +504,7 @@ def engine_khat(result, data, key, num_draws: int = 1000) -> dict:
         if not hasattr(result.state, "context"):
             out["note"] = "the SVI result does not carry its guide parameters"
             return out
-        log_ratio, _ = result.state.importance_log_ratios(key_q, num_draws)
+        log_ratio, _ = result.state.importance_log_ratios(key_q, num_draws, program)
     else:
         out["note"] = f"no k-hat for engine {engine}"
         return out

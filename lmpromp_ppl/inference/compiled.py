@@ -18,16 +18,19 @@ the limit, forgets every program (this cache and JAX's), which releases them.
 
 from __future__ import annotations
 
+import os
 import time
-from typing import Any, Callable
+from concurrent.futures import Future, ThreadPoolExecutor
+from typing import Any, Callable, Sequence
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["compiled", "lookup", "remember", "clear", "release_if_needed", "MAP_FRACTION"]
+__all__ = ["compiled", "compile_side_by_side", "compile_in_background", "lookup", "remember", "clear", "release_if_needed", "MAP_FRACTION"]
 
 _CACHE: dict = {}
+_BACKGROUND: ThreadPoolExecutor | None = None
 
 #: Fraction of ``vm.max_map_count`` above which :func:`release_if_needed` forgets every compiled program.
 MAP_FRACTION = 0.6
@@ -77,6 +80,38 @@ def compiled(function: Callable, args: tuple, **static: Any) -> tuple[Callable, 
     seconds = time.perf_counter() - start
     _CACHE[key] = executable
     return executable, seconds
+
+
+def compile_side_by_side(lowered: Sequence[Any], workers: int | None = None) -> list:
+    """Compile lowered programs (``jax.stages.Lowered``) in threads, one per core; the executables in order.
+
+    XLA releases Python's global lock while it compiles, so independent programs
+    compile side by side (lowering, which traces Python and, for NumPyro models, a
+    global handler stack, stays in the caller's thread).
+    """
+    lowered = list(lowered)
+    if not lowered:
+        return []
+    release_if_needed()
+    workers = min(len(lowered), workers or os.cpu_count() or 1)
+    if workers == 1:
+        return [program.compile() for program in lowered]
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        return list(pool.map(lambda program: program.compile(), lowered))
+
+
+def compile_in_background(lowered: Any) -> Future:
+    """Start compiling a lowered program in a background thread; the ``Future`` of its executable.
+
+    An engine lowers a program it will need after its run (the draws of a fit) and
+    compiles it while the run goes on: XLA compiles without Python's global lock.
+    One background thread, so programs queue rather than crowd the cores.
+    """
+    global _BACKGROUND
+    if _BACKGROUND is None:
+        _BACKGROUND = ThreadPoolExecutor(max_workers=1, thread_name_prefix="lmpromp-compile")
+    release_if_needed()
+    return _BACKGROUND.submit(lowered.compile)
 
 
 def lookup(key: tuple):

@@ -78,7 +78,7 @@ from __future__ import annotations
 import time
 import warnings
 from functools import partial
-from typing import Any, Mapping, NamedTuple
+from typing import Any, Callable, Mapping, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -91,7 +91,7 @@ from lmpromp_ppl._keys import raw_key
 from lmpromp_ppl._progress import line_reporter
 from lmpromp_ppl.data.core import ModelData, as_float64
 from lmpromp_ppl.errors import ConvergenceWarning, LmprompError
-from lmpromp_ppl.inference.compiled import lookup, remember
+from lmpromp_ppl.inference.compiled import compile_in_background, lookup, remember
 from lmpromp_ppl.inference.svi_guides import (
     GUIDES,
     cavi_state_from_meanfield,
@@ -115,7 +115,12 @@ __all__ = [
     "meanfield_params_from_cavi",
     "cavi_state_from_meanfield",
     "fit_svi",
+    "DRAWS_AFTER_FIT",
 ]
+
+#: Draws :func:`lmpromp_ppl.fit` takes from an SVI fit's guide, whose program :func:`fit_svi` compiles during the fit.
+DRAWS_AFTER_FIT = 1000
+
 
 class SviContext(NamedTuple):
     """Everything :meth:`SviResult.sample` needs besides the parameters."""
@@ -130,6 +135,9 @@ class SviContext(NamedTuple):
     #: the fit's own (model, guide) pair: an automatic guide in it has already
     #: recorded its prototype trace, so drawing from it runs no eager model pass
     programs: tuple | None = None
+    #: draw programs compiled (or compiling, as a ``concurrent.futures.Future``) while the fit ran,
+    #: by number of draws (:func:`fit_svi`'s ``draws``)
+    draw_programs: Mapping[int, Any] | None = None
 
     def model_and_guide(self):
         """The (model, guide) of the fit, or a fresh pair from :func:`make_guide`."""
@@ -165,12 +173,13 @@ class SviResult(NamedTuple):
     options: dict[str, Any]
     context: SviContext
 
-    def importance_log_ratios(self, key: jax.Array, num_draws: int) -> tuple[np.ndarray, tuple]:
-        """log p - log q for ``num_draws`` particles of the guide, and (model, guide, params, args).
+    def importance_program(self, num_draws: int) -> tuple[Any, tuple]:
+        """The lowered (not yet compiled) program of :meth:`importance_log_ratios`, and (model, guide, params, args).
 
-        The model is the guide's own (collapsed over ``w`` for the automatic guides,
-        where ``w`` given theta is exact and cancels from the ratio), through
-        numpyro's importance traces; used for the PSIS k-hat of the fit.
+        Lowering traces numpyro's handlers, whose stack is global, so it must run in the
+        caller's thread; the returned ``jax.stages.Lowered`` can then be compiled anywhere,
+        side by side with other programs (:func:`~lmpromp_ppl.inference.compiled.compile_side_by_side`).
+        :meth:`importance_log_ratios` runs the compiled program.
         """
         from numpyro.handlers import seed
         from numpyro.infer.elbo import get_importance_log_probs
@@ -191,8 +200,23 @@ class SviResult(NamedTuple):
             lp_model, lp_guide = get_importance_log_probs(seed(model, k_model), seed(guide, k_guide), args, {}, params)
             return sum(v.sum() for v in lp_model.values()) - sum(v.sum() for v in lp_guide.values())
 
-        log_ratio = jax.jit(jax.vmap(one))(jax.random.split(key, num_draws))
-        return np.asarray(log_ratio), (model, guide, params, args)
+        keys = jax.ShapeDtypeStruct((int(num_draws),), jax.random.split(jax.random.key(0), 1).dtype)
+        return jax.jit(jax.vmap(one)).lower(keys), (model, guide, params, args)
+
+    def importance_log_ratios(self, key: jax.Array, num_draws: int, program=None) -> tuple[np.ndarray, tuple]:
+        """log p - log q for ``num_draws`` particles of the guide, and (model, guide, params, args).
+
+        The model is the guide's own (collapsed over ``w`` for the automatic guides,
+        where ``w`` given theta is exact and cancels from the ratio), through
+        numpyro's importance traces; used for the PSIS k-hat of the fit.  ``program``:
+        (the compiled program of :meth:`importance_program` for ``num_draws``, its context);
+        built here when None.
+        """
+        if program is None:
+            lowered, context = self.importance_program(num_draws)
+            program = (lowered.compile(), context)
+        executable, context = program
+        return np.asarray(executable(jax.random.split(key, num_draws))), context
 
     def _inputs(self):
         """The model inputs the fit evaluated (:func:`~lmpromp_ppl.models.registry.model_inputs`)."""
@@ -211,28 +235,33 @@ class SviResult(NamedTuple):
         num_draws = int(num_draws)
         if num_draws < 1:
             raise LmprompError(f"num_draws must be >= 1, got {num_draws}")
-        model, guide = ctx.model_and_guide()
-        fixed = ctx.fixed
-
-        sites = sorted(site_shapes(model, ctx.data, fixed, deterministic=True))
-        collapse = "none" if ctx.guide == "meanfield" else ctx.collapse
-
-        def draw(key, params, inputs, data, fixed):
-            # one compiled program for the guide's draws and the integrated sites:
-            # op by op, each distinct operation of the model would compile on its own
-            key_q, key_cond = jax.random.split(key)
-            predictive = Predictive(model, guide=guide, params=params, num_samples=num_draws, return_sites=sites)
-            # the model evaluates its fastest inputs (shared-design statistics where possible)
-            draws = dict(predictive(key_q, inputs, fixed))
-            if collapse != "none":
-                flat = dict(draws)
-                flat.update({k: jnp.broadcast_to(v, (num_draws,) + v.shape) for k, v in fixed.items()})
-                draws.update(draw_integrated_sites(ctx.model_name, collapse, key_cond, data, ctx.hyper, flat))
-            return draws
-
+        program = (ctx.draw_programs or {}).get(num_draws)
+        program = _draw_function(ctx, num_draws) if program is None else program.result()
         params = {k: jnp.asarray(v) for k, v in self.params.items()}
-        draws = jax.jit(draw)(raw_key(key), params, self._inputs(), ctx.data, fixed)
+        draws = program(raw_key(key), params, self._inputs(), ctx.data, ctx.fixed)
         return {k: np.asarray(v) for k, v in draws.items()}
+
+
+def _draw_function(ctx: SviContext, num_draws: int) -> Callable:
+    """The jitted ``draw(key, params, inputs, data, fixed)`` of :meth:`SviResult.sample`: one program for the
+    guide's draws and the integrated sites (op by op, each distinct operation of the model would compile
+    on its own)."""
+    model, guide = ctx.model_and_guide()
+    sites = sorted(site_shapes(model, ctx.data, ctx.fixed, deterministic=True))
+    collapse = "none" if ctx.guide == "meanfield" else ctx.collapse
+
+    def draw(key, params, inputs, data, fixed):
+        key_q, key_cond = jax.random.split(key)
+        predictive = Predictive(model, guide=guide, params=params, num_samples=num_draws, return_sites=sites)
+        # the model evaluates its fastest inputs (shared-design statistics where possible)
+        draws = dict(predictive(key_q, inputs, fixed))
+        if collapse != "none":
+            flat = dict(draws)
+            flat.update({k: jnp.broadcast_to(v, (num_draws,) + v.shape) for k, v in fixed.items()})
+            draws.update(draw_integrated_sites(ctx.model_name, collapse, key_cond, data, ctx.hyper, flat))
+        return draws
+
+    return jax.jit(draw)
 
 
 def _adam(rate: float, decay: float, b1: float = 0.9, b2: float = 0.999, eps: float = 1e-8):
@@ -291,6 +320,7 @@ def fit_svi(
     progress: bool = False,
     init_params: Mapping[str, Any] | None = None,
     fixed: Mapping[str, Any] | None = None,
+    prepare_draws: int = DRAWS_AFTER_FIT,
 ) -> SviResult:
     r"""Fit a guide to the posterior of a declared model by SVI (Adam on the ELBO).
 
@@ -322,6 +352,9 @@ def fit_svi(
     init_params : initial (constrained) values of variational parameters; for
         the meanfield guide the default is :func:`meanfield_init`
     fixed : values at which some latent sites are held (automatic guides)
+    prepare_draws : the program of :meth:`SviResult.sample` for this many draws compiles in
+        the background while the fit runs (:data:`DRAWS_AFTER_FIT`, what :func:`lmpromp_ppl.fit`
+        draws first); 0 for none
 
     Returns
     -------
@@ -385,11 +418,19 @@ def fit_svi(
             # an autoguide records its prototype trace on first call: initialise eagerly
             init_fn = partial(_eager_init, svi)
         state = init_fn(raw_key(key), inputs, fixed, init)
+        draw_programs = {}
+        if prepare_draws:
+            # lowered here (numpyro's handler stack is global), compiled beside the chunk and the run
+            pending = SviContext(model_name, guide, collapse, rank, data, hyper, fixed, (svi.model, svi.guide))
+            key_shape = jax.ShapeDtypeStruct((2,), jnp.uint32)
+            lowered = _draw_function(pending, int(prepare_draws)).lower(
+                key_shape, jax.eval_shape(svi.get_params, state), inputs, data, fixed)
+            draw_programs[int(prepare_draws)] = compile_in_background(lowered)
         chunk = jax.jit(run_chunk).lower(state, inputs, fixed).compile()
-        cached = (svi, init_fn, chunk)
+        cached = (svi, init_fn, chunk, draw_programs)
         remember(cache_key, cached)
     else:
-        svi, init_fn, chunk = cached
+        svi, init_fn, chunk, draw_programs = cached
         state = init_fn(raw_key(key), inputs, fixed, init)
     rate = float(learning_rate)
     state = jax.block_until_ready(_with_rate(state, rate))
@@ -433,6 +474,6 @@ def fit_svi(
                "num_particles": int(num_particles), "rank": rank, "stop_tol": float(stop_tol),
                "window": int(window), "plateau_reductions": int(plateau_reductions),
                "plateau_factor": float(plateau_factor), "final_learning_rate": rate, "fixed": sorted(fixed)}
-    context = SviContext(model_name, guide, collapse, rank, data, hyper, fixed, (svi.model, svi.guide))
+    context = SviContext(model_name, guide, collapse, rank, data, hyper, fixed, (svi.model, svi.guide), draw_programs)
     return SviResult(params, loss_trace, int(loss_trace.shape[0]), converged, seconds, compile_seconds,
                      options, context)

@@ -34,6 +34,11 @@ START_SITES = ("b", "M", "alpha", "lam", "beta")
 #: Models for which a CAVI start exists.
 WARM_START_MODELS = ("lmpromp",)
 
+#: The starts are the first draws of this many from q: the number a fit's posterior draws default to
+#: (:meth:`lmpromp_ppl.results.FitResult.posterior_draws`), so that a CAVI fit after a NUTS fit on the
+#: same data (``lmpromp compare``) reuses the compiled sampler instead of compiling one per count.
+SHARED_DRAWS = 1000
+
 
 def cavi_start(
     model_name: str, data: ModelData, hyper: Hyperparameters, key: jax.Array, num_chains: int,
@@ -58,6 +63,7 @@ def cavi_start(
     import time
     import warnings
 
+    from lmpromp_ppl._keys import typed_key
     from lmpromp_ppl.errors import ConvergenceWarning, LmprompError
     from lmpromp_ppl.inference import cavi
 
@@ -69,7 +75,9 @@ def cavi_start(
         # a start only has to be in the typical set, not at the converged optimum
         warnings.simplefilter("ignore", ConvergenceWarning)
         res = cavi.fit(data, hyper, fit_key)  # the CAVI engine's settings: its compiled program is shared
-    draws = cavi.sample_q(draw_key, res.state, num_chains)
+    # a typed key, as FitResult.posterior_draws passes: one compiled sampler for both
+    draws = cavi.sample_q(typed_key(draw_key), res.state, max(num_chains, SHARED_DRAWS))
+    draws = {k: v[:num_chains] for k, v in draws.items()}
     sites = [s for s in sites if s in draws and (s != "beta" or hyper.learn_beta)]
     starts = {s: np.asarray(draws[s], dtype=np.float64) for s in sites}
     info = {"seconds": time.perf_counter() - start, "elbo": float(res.elbo), "iterations": int(res.iterations)}

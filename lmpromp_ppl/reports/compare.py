@@ -94,6 +94,17 @@ def _engine_quantities(result, reference, rank, num_draws, key):
     return identifiable_quantities(result.model, aligned, derived, rank=rank), aligned, derived["phase"]
 
 
+def _importance_programs(results: dict, num_draws: int) -> dict:
+    """The SVI engines' importance-ratio programs for the k-hat, compiled side by side (a compare report
+    waited for them one after the other): engine name -> (executable, context)."""
+    from lmpromp_ppl.inference.compiled import compile_side_by_side
+
+    lowered = {name: r.state.importance_program(num_draws) for name, r in results.items()
+               if name.startswith("svi_") and hasattr(r.state, "importance_program")}
+    executables = compile_side_by_side([program for program, _ in lowered.values()])
+    return {name: (exe, context) for (name, (_, context)), exe in zip(lowered.items(), executables)}
+
+
 def compute_metrics(results: dict, data, *, num_draws: int = 1000, seed: int = 0) -> tuple[dict, dict]:
     """Metrics of every VI result against the ``"nuts"`` result, and the details the report plots.
 
@@ -116,6 +127,7 @@ def compute_metrics(results: dict, data, *, num_draws: int = 1000, seed: int = 0
     from lmpromp_ppl.diagnostics.metrics import (
         compare_marginals,
         engine_khat,
+        reference_marginals,
         joint_divergences,
         reference_reliability,
         summarise_comparison,
@@ -144,15 +156,19 @@ def compute_metrics(results: dict, data, *, num_draws: int = 1000, seed: int = 0
     }}
     comparisons = {}
     ref_flat = {k: _merge(v) for k, v in ref_q.items()}
+    programs = _importance_programs(results, num_draws)
+    # the reference's marginals sorted once, for every engine
+    ref_columns = {k: v.reshape(v.shape[0], -1) for k, v in ref_flat.items()}
+    ref_marginals = {k: reference_marginals(v) for k, v in ref_columns.items()}
     for i, (name, result) in enumerate(results.items()):
         if name == "nuts":
             continue
         q_flat = {k: _merge(v) for k, v in quantities[name].items()}
-        comp = {k: compare_marginals(q_flat[k].reshape(q_flat[k].shape[0], -1),
-                                     ref_flat[k].reshape(ref_flat[k].shape[0], -1))
+        comp = {k: compare_marginals(q_flat[k].reshape(q_flat[k].shape[0], -1), ref_columns[k],
+                                     reference=ref_marginals[k])
                 for k in ref_flat if k in q_flat}
         comparisons[name] = comp
-        khat = engine_khat(result, data, jax.random.fold_in(key, 1000 + i), num_draws)
+        khat = engine_khat(result, data, jax.random.fold_in(key, 1000 + i), num_draws, programs.get(name))
         engines[name] = {
             "seconds": result.summary.get("seconds"),
             "compile_seconds": result.summary.get("compile_seconds"),
