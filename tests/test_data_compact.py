@@ -16,7 +16,16 @@ from numpyro import handlers
 from numpyro.infer.util import log_density
 
 from lmpromp_ppl.basis import design_matrix
-from lmpromp_ppl.data.core import Demonstrations, ModelData, PhaseData, SharedDesign, model_data, shared_design
+from lmpromp_ppl.data.core import (
+    DemoStatistics,
+    Demonstrations,
+    ModelData,
+    PhaseData,
+    SharedDesign,
+    demo_statistics,
+    model_data,
+    shared_design,
+)
 from lmpromp_ppl.errors import DataError, LmprompError
 from lmpromp_ppl.inference import cavi
 from lmpromp_ppl.models import Hyperparameters
@@ -129,17 +138,59 @@ def test_shared_design_statistics_give_the_dense_density_and_gradient(name, coll
                                        rtol=1e-9, atol=1e-9 * float(np.max(np.abs(want_grad[site]))))
 
 
+STATISTICS_MODELS = [("lmpromp", "none"), ("lmpromp", "w"), ("lmpromp", "wh"), ("lmpromp", "whb"),
+                     ("mixture", "w"), ("mixture", "wh"), ("promp", "w")]
+
+
+@pytest.mark.parametrize("name, collapsed", STATISTICS_MODELS)
+def test_per_demonstration_statistics_give_the_dense_density_and_gradient(name, collapsed):
+    """Demonstrations of different lengths with a missing value: the declarations evaluate
+    per-demonstration statistics (built from PhaseData without the dense design, or from the
+    dense ModelData whose masked entry holds NaN); value and gradient equal the dense form's."""
+    compact = model_data(_demos((6, 4, 5), seed=4), NUM_BASIS)
+    observed = np.asarray(compact.observed).copy()
+    observed[2, 1, 0] = 0.0
+    compact = compact._replace(observed=jnp.asarray(observed))
+    dense = compact.dense()
+    with_nan = dense._replace(y=dense.y.at[2, 1 * 2 + 0].set(jnp.nan))
+    stats = model_inputs(name, collapsed, compact)
+    assert isinstance(stats, DemoStatistics)
+    from_dense = demo_statistics(with_nan)
+    for got, want in zip(stats, from_dense):
+        np.testing.assert_allclose(np.asarray(got), np.asarray(want), atol=1e-13)
+    model = model_function(name, collapsed)
+    trace = handlers.trace(handlers.seed(model, jax.random.key(5))).get_trace(dense, HYPER)
+    params = {k: v["value"] for k, v in trace.items() if v["type"] == "sample" and not v["is_observed"]}
+
+    @jax.jit
+    def value_and_grad(inputs):
+        return jax.value_and_grad(lambda p: log_density(model, (inputs, HYPER), {}, p)[0])(params)
+
+    want, want_grad = value_and_grad(dense)
+    for inputs in (stats, from_dense):
+        got, got_grad = value_and_grad(inputs)
+        np.testing.assert_allclose(float(got), float(want), rtol=1e-11)
+        for site in want_grad:
+            np.testing.assert_allclose(np.asarray(got_grad[site]), np.asarray(want_grad[site]),
+                                       rtol=1e-8, atol=1e-9 * float(np.max(np.abs(want_grad[site]))))
+
+
 def test_shared_design_only_where_every_demonstration_has_the_same_observed_design():
     ragged = model_data(_demos(**CASES["ragged"]), NUM_BASIS)
     assert shared_design(ragged) is None
-    assert isinstance(model_inputs("lmpromp", "wh", ragged), ModelData)
+    # designs that differ: per-demonstration statistics, except where the observation sites need the design
+    assert isinstance(model_inputs("lmpromp", "wh", ragged), DemoStatistics)
+    assert isinstance(model_inputs("mixture", "none", ragged), ModelData)
+    assert isinstance(model_inputs("promp", "none", ragged), ModelData)
     shared = model_data(_demos(**CASES["shared"]), NUM_BASIS)
     observed = np.asarray(shared.observed).copy()
     observed[0, 1, 0] = 0.0  # one missing value breaks the shared design
     assert shared_design(shared._replace(observed=jnp.asarray(observed))) is None
-    # the ProMP and the offset-collapsed LMProMP keep the dense form
-    assert isinstance(model_inputs("promp", "w", shared), ModelData)
-    assert isinstance(model_inputs("lmpromp", "whb", shared), ModelData)
+    # the ProMP and the offset-collapsed LMProMP take the per-demonstration statistics
+    assert isinstance(model_inputs("promp", "w", shared), DemoStatistics)
+    assert isinstance(model_inputs("lmpromp", "whb", shared), DemoStatistics)
+    with pytest.raises(LmprompError, match="needs their design"):
+        handlers.seed(model_function("promp", "w"), 0)(model_inputs("promp", "w", ragged), HYPER, observed=False)
     # statistics cannot simulate demonstrations
     model = model_function("lmpromp", "wh")
     with pytest.raises(LmprompError, match="needs their design"):

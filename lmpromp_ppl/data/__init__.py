@@ -1,6 +1,7 @@
 """Demonstration data: the :class:`Demonstrations` type, loaders and files."""
 
 from lmpromp_ppl.data.core import (
+    DemoStatistics,
     Demonstrations,
     ModelData,
     PhaseData,
@@ -8,6 +9,7 @@ from lmpromp_ppl.data.core import (
     SharedDesign,
     as_float64,
     model_data,
+    demo_statistics,
     shared_design,
     standardise,
 )
@@ -29,6 +31,8 @@ __all__ = [
     "PhaseData",
     "SharedDesign",
     "shared_design",
+    "DemoStatistics",
+    "demo_statistics",
     "as_float64",
     "Scaling",
     "model_data",

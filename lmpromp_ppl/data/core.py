@@ -24,8 +24,8 @@ from lmpromp_ppl.basis import DEFAULT_WIDTH, rbf_basis
 from lmpromp_ppl.errors import DataError
 
 __all__ = [
-    "Demonstrations", "Scaling", "ModelData", "PhaseData", "SharedDesign", "as_float64", "gram_eigenbasis",
-    "shared_design",
+    "Demonstrations", "Scaling", "ModelData", "PhaseData", "SharedDesign", "DemoStatistics", "as_float64",
+    "gram_eigenbasis", "shared_design", "demo_statistics",
     "standardise", "model_data",
 ]
 
@@ -400,6 +400,67 @@ def shared_design(data: "ModelData | PhaseData") -> SharedDesign | None:
         sq = jnp.sum(y**2, axis=1)
         count = jnp.full(y.shape[0], y.shape[1], dtype=jnp.float64)
     return SharedDesign(rotation, eig, cross, sq, count)
+
+
+class DemoStatistics(NamedTuple):
+    r"""Per-demonstration sufficient statistics of the Gaussian likelihood of the weights, for any designs.
+
+    :math:`\log\mathcal N(\mathbf y_i | \Psi_i\mathbf w_i, \beta^{-1}\mathbf I)` over the
+    observed entries depends on the data only through :math:`\mathbf G_i = \Psi_i^T\Psi_i`,
+    :math:`\mathbf c_i = \Psi_i^T\mathbf y_i`, :math:`\mathbf y_i^T\mathbf y_i` and the number
+    of observed entries (masked rows count as zero rows).  The form the declarations evaluate
+    when the demonstrations do not share one design (different lengths or phases, missing
+    values): O(L d^2) memory instead of the dense O(L S d), and each collapsed density needs
+    one d x d factorisation per demonstration instead of an S-sized low-rank one.  Built once,
+    outside compiled code, by :func:`demo_statistics` (from :class:`PhaseData` without the dense
+    design: :math:`\mathbf G_i` is block-diagonal over the DoF).
+
+    Attributes
+    ----------
+    gram : (L, d, d); cross : (L, d); sq : (L,); count : (L,)
+    """
+
+    gram: Array
+    cross: Array
+    sq: Array
+    count: Array
+
+    @property
+    def num_demos(self) -> int:
+        return self.cross.shape[0]
+
+    @property
+    def num_weights(self) -> int:
+        return self.cross.shape[1]
+
+
+def demo_statistics(data: "ModelData | PhaseData") -> DemoStatistics:
+    r"""The :class:`DemoStatistics` of model inputs (float64).
+
+    From :class:`PhaseData`, block k of :math:`\mathbf G_i` is :math:`\Phi_i^T\mathrm{diag}(\mathbf o_{ik})\Phi_i`
+    and of :math:`\mathbf c_i` it is :math:`\Phi_i^T(\mathbf o_{ik}\odot\mathbf y_{ik})` (``o`` the
+    observed flags); from :class:`ModelData`, the products of the masked design.
+    """
+    if isinstance(data, DemoStatistics):
+        return data
+    if isinstance(data, PhaseData):
+        phi = jnp.asarray(data.phi, dtype=jnp.float64)
+        observed = jnp.asarray(data.observed, dtype=jnp.float64)
+        values = jnp.where(observed > 0, jnp.asarray(data.values, dtype=jnp.float64), 0.0)
+        num_demos, _, num_dofs = values.shape
+        num_basis = phi.shape[2]
+        phi = jnp.broadcast_to(phi, (num_demos,) + phi.shape[1:])
+        blocks = jnp.einsum("ltj,ltk,lti->lkji", phi, observed, phi)  # (L, D, J, J)
+        eye = jnp.eye(num_dofs)
+        gram = (eye[None, :, None, :, None] * blocks[:, :, :, None, :]).reshape(
+            num_demos, num_dofs * num_basis, num_dofs * num_basis)
+        cross = jnp.einsum("ltj,ltk->lkj", phi, values).reshape(num_demos, -1)
+        return DemoStatistics(gram, cross, jnp.sum(values**2, axis=(1, 2)), jnp.sum(observed, axis=(1, 2)))
+    psi, y, mask = (jnp.asarray(a, dtype=jnp.float64) for a in data)
+    psi = jnp.where(mask[..., None] > 0, psi, 0.0)  # a masked entry may hold NaN
+    y = jnp.where(mask > 0, y, 0.0)
+    return DemoStatistics(jnp.einsum("lsd,lse->lde", psi, psi), jnp.einsum("lsd,ls->ld", psi, y),
+                          jnp.sum(y**2, axis=-1), jnp.sum(mask, axis=-1))
 
 
 def model_data(

@@ -188,7 +188,7 @@ from numpyro.infer.reparam import LocScaleReparam
 from numpyro.infer.util import ParamInfo, initialize_model
 
 from lmpromp_ppl._keys import raw_key
-from lmpromp_ppl.data.core import ModelData, as_float64
+from lmpromp_ppl.data.core import ModelData, as_float64, demo_statistics
 from lmpromp_ppl.errors import LmprompError
 from lmpromp_ppl.inference.compiled import lookup, remember
 from lmpromp_ppl.inference.warm_start import START_SITES, WARM_START_MODELS, cavi_start
@@ -454,8 +454,9 @@ def fit_nuts(
         raise LmprompError("hyper must be a Hyperparameters instance")
     if init == "auto":
         init = "cavi" if model_name in WARM_START_MODELS and not init_values else "uniform"
-    original = as_float64(data)  # the CAVI start fits these (sharing the CAVI engine's compiled program)
-    data = original.dense()
+    # the CAVI start fits these (sharing the CAVI engine's compiled program); no dense design is built
+    # for compact inputs (the potential and the conditional draws evaluate statistics)
+    data = as_float64(data)
     fixed = {k: jnp.asarray(v, dtype=jnp.float64) for k, v in (fixed or {}).items()}
     init_values = {k: jnp.asarray(v, dtype=jnp.float64) for k, v in (init_values or {}).items()}
     shapes = site_shapes(model_function(model_name, collapse), data, hyper)
@@ -463,7 +464,7 @@ def fit_nuts(
     start_info = None
     if init == "cavi":
         starts, start_info = cavi_start(
-            model_name, original, hyper, jax.random.fold_in(raw_key(key), 7), num_chains,
+            model_name, data, hyper, jax.random.fold_in(raw_key(key), 7), num_chains,
             sites=tuple(sorted((latent - set(fixed)) & set(START_SITES))),
         )
         given = {k: jnp.broadcast_to(v, (num_chains,) + shapes[k])
@@ -490,9 +491,10 @@ def fit_nuts(
         num_chains, num_warmup, num_samples, float(target_accept), max_tree_depth,
         bool(dense_mass), chain_method, per_chain,
     )
-    # the potential evaluates the fastest equal form of the data (shared-design
-    # statistics where possible); the draws of w and h use the dense form
-    args = (raw_key(key), model_inputs(model_name, collapse, data), data, fixed, init_values)
+    # the potential evaluates the fastest equal form of the data (shared-design or per-demonstration
+    # statistics where possible); the draws of the integrated sites use the per-demonstration statistics
+    conditional = demo_statistics(data) if collapse != "none" else None
+    args = (raw_key(key), model_inputs(model_name, collapse, data), conditional, fixed, init_values)
     cache_key = (config, jax.tree_util.tree_structure(args),
                  tuple((a.shape, a.dtype) for a in jax.tree_util.tree_leaves(args)))
     start = time.perf_counter()

@@ -46,6 +46,15 @@ so it is independent of the rest and contributes exactly
 ``y_missing`` removes that, so the density equals the one over observed entries
 only (when ``observed=False`` there is nothing to remove and no factor).
 
+**Designs that differ** (:class:`~lmpromp_ppl.data.core.DemoStatistics`: demonstrations of
+different lengths or phases, missing values).  The same marginals follow from per-demonstration
+statistics :math:`\mathbf G_i = \Psi_i^T\Psi_i`, :math:`\Psi_i^T\mathbf y_i`, :math:`\mathbf y_i^T\mathbf y_i`
+and the count of observed entries (:func:`statistics_log_evidence`, through
+:func:`~lmpromp_ppl.models.conditionals.gaussian_conditional`: one d x d factorisation per
+demonstration, O(L d^3), instead of the S-sized low-rank form, O(L S (d + V)^2)); masked entries
+simply do not count, so there is no ``y_missing`` factor.  The ProMP collapsed over ``w`` and the
+offset-collapsed LMProMP take them too; the full mixture and the full ProMP keep the dense form.
+
 After inference on a collapsed model, :mod:`lmpromp_ppl.models.conditionals`
 restores ``w`` (and ``h``) by drawing them from their exact Gaussian conditionals.
 """
@@ -61,9 +70,9 @@ import numpyro.distributions as dist
 from jax import Array
 from jax.scipy.linalg import solve_triangular
 
-from lmpromp_ppl.data.core import ModelData, SharedDesign
+from lmpromp_ppl.data.core import DemoStatistics, ModelData, SharedDesign
 from lmpromp_ppl.errors import LmprompError
-from lmpromp_ppl.models.conditionals import data_statistics, offset_marginal
+from lmpromp_ppl.models.conditionals import data_statistics, gaussian_conditional, offset_marginal
 from lmpromp_ppl.models.hyper import Hyperparameters
 from lmpromp_ppl.models.lmpromp import MaskedObservations, global_priors, observation_precision, masked_observations
 from lmpromp_ppl.models.mixture import component_priors
@@ -71,6 +80,7 @@ from lmpromp_ppl.models.promp import promp_weight_prior
 
 __all__ = [
     "shared_log_evidence",
+    "statistics_log_evidence",
     "lmpromp_collapsed_model",
     "lmpromp_offset_collapsed_model",
     "mixture_collapsed_model",
@@ -169,10 +179,38 @@ def shared_log_evidence(
             - 0.5 * beta * residual + 0.5 * beta**2 * quad)
 
 
-def _shared_inputs(data: SharedDesign, hyper: Hyperparameters, observed: bool) -> int:
+def statistics_log_evidence(
+    stats: DemoStatistics, b: Array, M: Array, alpha: Array, beta: Array, gamma: float, h: Array | None = None
+) -> Array:
+    r"""Per demonstration, :math:`\log p(\mathbf y_i | \theta)` of :func:`shared_log_evidence` for designs that
+    differ between demonstrations, from :class:`~lmpromp_ppl.data.core.DemoStatistics`.
+
+    The prior of :math:`\mathbf w_i` is :math:`\mathcal N(\mathbf b + \mathbf M\mathbf h_i, \alpha^{-1}\mathbf I)`
+    (``h`` given; :math:`\log|\mathbf A| = d\log\alpha`) or :math:`\mathcal N(\mathbf b, \alpha^{-1}\mathbf I +
+    \gamma^{-1}\mathbf M\mathbf M^T)` (``h`` integrated out; precision by Woodbury and
+    :math:`\log|\mathbf A| = d\log\alpha - \log|\mathbf I_V + (\alpha/\gamma)\mathbf M^T\mathbf M|` by the
+    determinant lemma); :func:`~lmpromp_ppl.models.conditionals.gaussian_conditional` gives the
+    evidence with one d x d factorisation per demonstration, O(L d^3).
+    """
+    num_weights, num_latent = M.shape
+    if h is None:
+        mean = jnp.broadcast_to(b, (stats.num_demos, num_weights))
+        inner = jnp.eye(num_latent) + (alpha / gamma) * (M.T @ M)
+        precision = alpha * jnp.eye(num_weights) - alpha**2 * (M @ jnp.linalg.solve(gamma * inner, M.T))
+        logdet = num_weights * jnp.log(alpha) - 2.0 * jnp.sum(jnp.log(jnp.diagonal(jnp.linalg.cholesky(inner))))
+    else:
+        mean = b + h @ M.T
+        precision = alpha * jnp.eye(num_weights)
+        logdet = num_weights * jnp.log(alpha)
+    _, _, log_evidence = gaussian_conditional(stats.gram, stats.cross, stats.sq, stats.count, beta, mean,
+                                              precision, logdet)
+    return log_evidence
+
+
+def _shared_inputs(data: SharedDesign | DemoStatistics, hyper: Hyperparameters, observed: bool) -> int:
     if not observed:
         raise LmprompError("simulating demonstrations needs their design: pass ModelData or PhaseData, "
-                           "not SharedDesign statistics")
+                           f"not {type(data).__name__} statistics")
     hyper.validate_for(data.num_weights)
     return data.num_weights
 
@@ -194,13 +232,14 @@ def lmpromp_collapsed_model(
     (unless ``collapse_h``), ``y`` and the factor ``y_missing``.
     """
     num_latent = hyper.latent_dim
-    if isinstance(data, SharedDesign):
+    if isinstance(data, (SharedDesign, DemoStatistics)):
+        evidence = shared_log_evidence if isinstance(data, SharedDesign) else statistics_log_evidence
         b, lam, M, alpha, beta = global_priors(hyper, _shared_inputs(data, hyper, observed))
         with numpyro.plate("demo", data.num_demos):
             h = None if collapse_h else numpyro.sample(
                 "h", dist.Normal(0.0, hyper.gamma**-0.5).expand([num_latent]).to_event(1)
             )
-            numpyro.factor("y", shared_log_evidence(data, b, M, alpha, beta, hyper.gamma, h))
+            numpyro.factor("y", evidence(data, b, M, alpha, beta, hyper.gamma, h))
         return
     prepared = masked_observations(data)
     num_demos, size, num_weights = prepared.psi.shape
@@ -243,11 +282,14 @@ def lmpromp_offset_collapsed_model(data: ModelData, hyper: Hyperparameters, obse
     if not observed:
         lmpromp_collapsed_model(data, hyper, collapse_h=True, observed=False)
         return
-    prepared = masked_observations(data)
-    num_weights = prepared.psi.shape[-1]
+    if isinstance(data, DemoStatistics):
+        stats = tuple(data)
+    else:
+        stats = data_statistics(masked_observations(data))
+    num_weights = stats[1].shape[-1]
     hyper.validate_for(num_weights)
     _, _, M, alpha, beta = global_priors(hyper, num_weights, offset=False)
-    log_marginal, _, _ = offset_marginal(data_statistics(prepared), M, alpha, beta, hyper.lambda0, hyper.gamma)
+    log_marginal, _, _ = offset_marginal(stats, M, alpha, beta, hyper.lambda0, hyper.gamma)
     numpyro.factor("y", log_marginal)
 
 
@@ -268,7 +310,8 @@ def mixture_collapsed_model(
     (L, K, V) unless ``collapse_h``, ``y`` and the factor ``y_missing``.
     """
     num_components, num_latent = hyper.num_components, hyper.latent_dim
-    if isinstance(data, SharedDesign):
+    if isinstance(data, (SharedDesign, DemoStatistics)):
+        evidence = shared_log_evidence if isinstance(data, SharedDesign) else statistics_log_evidence
         pi, b, _, M, alpha = component_priors(hyper, _shared_inputs(data, hyper, observed))
         beta = observation_precision(hyper)
         with numpyro.plate("demo", data.num_demos):
@@ -276,7 +319,7 @@ def mixture_collapsed_model(
                 "h", dist.Normal(0.0, hyper.gamma**-0.5).expand([num_components, num_latent]).to_event(2),
             )
             per_component = jax.vmap(
-                lambda b_k, M_k, alpha_k, h_k: shared_log_evidence(data, b_k, M_k, alpha_k, beta, hyper.gamma, h_k),
+                lambda b_k, M_k, alpha_k, h_k: evidence(data, b_k, M_k, alpha_k, beta, hyper.gamma, h_k),
                 in_axes=(0, 0, 0, None if h is None else 1), out_axes=1,
             )(b, M, alpha, h)
             # log-softmax as MixtureSameFamily normalises its mixing weights (the same gradient in pi)
@@ -325,6 +368,23 @@ def promp_collapsed_model(
     ``w_scale``, ``w_corr_chol``, ``Sigma_w``, ``beta`` (when learned), ``y``,
     ``y_missing``.
     """
+    if isinstance(data, DemoStatistics):
+        if not observed:
+            raise LmprompError("simulating demonstrations needs their design: pass ModelData or PhaseData, "
+                               "not DemoStatistics")
+        if data.num_weights < 2:
+            raise LmprompError(f"the ProMP baseline needs at least 2 weights, got d={data.num_weights}")
+        mu_w, scale_tril = promp_weight_prior(hyper, data.num_weights)
+        beta = observation_precision(hyper)
+        # through Sigma_w = L L^T, as the dense form reads L (its gradient off the support included)
+        chol = jnp.linalg.cholesky(scale_tril @ scale_tril.T)
+        inv_tril = solve_triangular(chol, jnp.eye(data.num_weights), lower=True)
+        logdet = -2.0 * jnp.sum(jnp.log(jnp.diagonal(chol)))
+        with numpyro.plate("demo", data.num_demos):
+            _, _, log_evidence = gaussian_conditional(data.gram, data.cross, data.sq, data.count, beta, mu_w,
+                                                      inv_tril.T @ inv_tril, logdet)
+            numpyro.factor("y", log_evidence)
+        return
     prepared = masked_observations(data)
     num_demos, size, num_weights = prepared.psi.shape
     if num_weights < 2:

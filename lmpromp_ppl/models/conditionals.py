@@ -18,7 +18,7 @@ import jax.numpy as jnp
 from jax import Array
 from jax.scipy.linalg import solve_triangular
 
-from lmpromp_ppl.data.core import ModelData
+from lmpromp_ppl.data.core import DemoStatistics, ModelData, PhaseData, demo_statistics
 from lmpromp_ppl.errors import LmprompError
 from lmpromp_ppl.models.hyper import Hyperparameters
 from lmpromp_ppl.models.lmpromp import MaskedObservations, masked_observations
@@ -194,6 +194,14 @@ def _params_for_draws(
     return sample_shape, flat
 
 
+def _statistics(data) -> tuple[Array, Array, Array, Array]:
+    """:func:`data_statistics` of any form of model inputs: dense, compact (no dense design built) or the
+    statistics themselves (:class:`~lmpromp_ppl.data.core.DemoStatistics`)."""
+    if isinstance(data, (PhaseData, DemoStatistics)):
+        return tuple(demo_statistics(data))
+    return data_statistics(masked_observations(data))
+
+
 def data_statistics(prepared: MaskedObservations) -> tuple[Array, Array, Array, Array]:
     """Per demonstration: Psi^T Psi (L, d, d), Psi^T y (L, d), y^T y (L,), count (L,)."""
     psi, y = prepared.psi, prepared.y
@@ -289,8 +297,8 @@ def sample_b_given_theta(
     ``params`` holds ``M`` (..., d, V), ``alpha`` (...) and ``beta`` (...) when
     learned; returns (..., d).
     """
-    prepared = masked_observations(data)
-    num_weights = prepared.psi.shape[-1]
+    stats = _statistics(data)
+    num_weights = stats[1].shape[-1]
     M = jnp.asarray(params["M"])
     sample_shape = M.shape[:-2]
     flat = {"M": M.reshape((-1,) + M.shape[-2:]),
@@ -301,7 +309,6 @@ def sample_b_given_theta(
         raise LmprompError("hyper.learn_beta is set but params has no 'beta'")
     if M.shape[-2] != num_weights:
         raise LmprompError(f"params['M'] has {M.shape[-2]} rows, the data have {num_weights} weights")
-    stats = data_statistics(prepared)
     return _map_draws(lambda k, theta: _b_one_draw(k, theta, stats, hyper), key, flat, sample_shape)
 
 
@@ -398,11 +405,10 @@ def sample_w_given_theta(
     -------
     w : (*sample_shape, L, d)
     """
-    prepared = masked_observations(data)
-    num_demos, _, num_weights = prepared.psi.shape
+    stats = _statistics(data)
+    num_demos, num_weights = stats[1].shape
     model = _infer_model(params) if model is None else model
     sample_shape, flat = _params_for_draws(params, hyper, model, num_weights, num_demos)
-    stats = data_statistics(prepared)
     return _map_draws(
         lambda k, theta: _w_one_draw(k, theta, stats, hyper, model), key, flat, sample_shape
     )
@@ -503,7 +509,7 @@ def draw_integrated_sites(model_name: str, collapse: str, key, data: ModelData,
     ----------
     model_name, collapse : model and collapse specification (``"w"``, ``"wh"`` or ``"whb"``)
     key : PRNG key
-    data : model inputs
+    data : model inputs: dense, compact or :class:`~lmpromp_ppl.data.core.DemoStatistics`
     hyper : hyperparameters
     params : site name -> (N, ...) constrained draws of the sampled (and fixed) sites
 

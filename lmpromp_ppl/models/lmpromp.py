@@ -21,7 +21,10 @@ with :math:`\beta \sim \Gamma(\beta_{a0}, \beta_{b0})` when
 Sites and shapes (docs/cli.md): ``b`` (d,), ``lam`` (V,), ``M``
 (d, V), ``alpha`` (), ``beta`` () when learned, ``h`` (L, V), ``w`` (L, d),
 ``y`` (L, S).  Entries with ``mask == 0`` (padding or missing values) do not
-contribute to the density.
+contribute to the density.  On the statistics forms of the data
+(:class:`~lmpromp_ppl.data.core.SharedDesign`, :class:`~lmpromp_ppl.data.core.DemoStatistics`,
+chosen by :func:`lmpromp_ppl.models.registry.model_inputs`) ``y`` is a ``numpyro.factor``
+per demonstration with the same value (:func:`shared_log_likelihood`, :func:`statistics_log_likelihood`).
 
 This module also holds the data checks shared by every model of
 :mod:`lmpromp_ppl.models`.
@@ -39,7 +42,7 @@ import numpyro
 import numpyro.distributions as dist
 from jax import Array
 
-from lmpromp_ppl.data.core import ModelData, PhaseData, SharedDesign
+from lmpromp_ppl.data.core import DemoStatistics, ModelData, PhaseData, SharedDesign
 from lmpromp_ppl.errors import DataError
 from lmpromp_ppl.models.hyper import Hyperparameters
 
@@ -47,6 +50,7 @@ _LOG_2PI = math.log(2.0 * math.pi)
 
 __all__ = [
     "lmpromp_model", "MaskedObservations", "masked_observations", "observation_precision", "observe_y", "global_priors",
+    "shared_log_likelihood", "statistics_log_likelihood",
 ]
 
 
@@ -136,7 +140,7 @@ def lmpromp_model(data: ModelData, hyper: Hyperparameters, observed: bool = True
     hyper : hyperparameters (precisions; Gamma shape/rate)
     observed : condition on ``data.y`` (True) or sample ``y`` (prior predictive)
     """
-    shared = isinstance(data, SharedDesign)
+    shared = isinstance(data, (SharedDesign, DemoStatistics))
     if shared and not observed:
         raise DataError("simulating demonstrations needs their design: pass ModelData or PhaseData")
     prepared = None if shared else masked_observations(data)
@@ -153,8 +157,10 @@ def lmpromp_model(data: ModelData, hyper: Hyperparameters, observed: bool = True
         w = numpyro.sample(
             "w", dist.Normal(b + h @ M.T, jnp.sqrt(1.0 / alpha)).to_event(1)
         )
-        if shared:
+        if isinstance(data, SharedDesign):
             numpyro.factor("y", shared_log_likelihood(data, w, beta))
+        elif shared:
+            numpyro.factor("y", statistics_log_likelihood(data, w, beta))
         else:
             observe_y(prepared, w, beta, observed)
 
@@ -168,6 +174,15 @@ def shared_log_likelihood(stats: SharedDesign, w: Array, beta) -> Array:
     """
     rotated = w @ stats.rotation
     residual = stats.sq - 2.0 * jnp.sum(rotated * stats.cross, axis=-1) + jnp.sum(stats.eig * rotated**2, axis=-1)
+    return 0.5 * stats.count * (jnp.log(beta) - _LOG_2PI) - 0.5 * beta * residual
+
+
+def statistics_log_likelihood(stats: DemoStatistics, w: Array, beta) -> Array:
+    r"""Per demonstration :math:`\log\mathcal N(\mathbf y_i | \Psi_i\mathbf w_i, \beta^{-1}\mathbf I)` over the
+    observed entries, from :class:`~lmpromp_ppl.data.core.DemoStatistics`:
+    :math:`\|\mathbf y_i - \Psi_i\mathbf w_i\|^2 = \mathbf y_i^T\mathbf y_i - 2\mathbf w_i^T\mathbf c_i
+    + \mathbf w_i^T\mathbf G_i\mathbf w_i`; ``w`` is (L, d), the result (L,)."""
+    residual = stats.sq - 2.0 * jnp.sum(w * stats.cross, axis=-1) + jnp.einsum("li,lij,lj->l", w, stats.gram, w)
     return 0.5 * stats.count * (jnp.log(beta) - _LOG_2PI) - 0.5 * beta * residual
 
 

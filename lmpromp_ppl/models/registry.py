@@ -20,21 +20,29 @@ import jax
 import numpy as np
 from numpyro import handlers
 
-from lmpromp_ppl.data.core import ModelData, PhaseData, SharedDesign, as_float64, shared_design
-from lmpromp_ppl.errors import LmprompError
+from lmpromp_ppl.data.core import (
+    DemoStatistics,
+    ModelData,
+    PhaseData,
+    SharedDesign,
+    as_float64,
+    demo_statistics,
+    shared_design,
+)
+from lmpromp_ppl.errors import DataError, LmprompError
 from lmpromp_ppl.models.collapsed import (
     lmpromp_collapsed_model,
     lmpromp_offset_collapsed_model,
     mixture_collapsed_model,
     promp_collapsed_model,
 )
-from lmpromp_ppl.models.lmpromp import lmpromp_model
+from lmpromp_ppl.models.lmpromp import lmpromp_model, masked_observations
 from lmpromp_ppl.models.mixture import mixture_model
 from lmpromp_ppl.models.promp import promp_model
 
 __all__ = [
     "MODEL_NAMES", "COLLAPSE_CHOICES", "check_model", "resolve_collapse", "model_function", "model_inputs", "get_model",
-    "site_shapes",
+    "site_shapes", "STATISTICS_FORMS",
 ]
 
 #: The models of docs/cli.md.
@@ -92,14 +100,17 @@ def model_function(model_name: str, collapsed: str) -> Callable[..., None]:
     return partial(_COLLAPSED[model_name], collapse_h=collapse == "wh")
 
 
-def model_inputs(model_name: str, collapsed: str, data: ModelData | PhaseData) -> ModelData | SharedDesign:
+def model_inputs(model_name: str, collapsed: str,
+                 data: ModelData | PhaseData) -> ModelData | SharedDesign | DemoStatistics:
     """The form of concrete model inputs that the declaration evaluates fastest, as float64.
 
     The full LMProMP and the collapsed LMProMP and mixture (``"w"``, ``"wh"``) take the
     :class:`~lmpromp_ppl.data.core.SharedDesign` statistics when every
     demonstration has the same fully observed design (O(L d V) per evaluation);
-    everything else takes the dense :class:`~lmpromp_ppl.data.core.ModelData`.
-    Both forms give the same log density (``tests/test_data_compact.py``).
+    otherwise the pairs of :data:`STATISTICS_FORMS` take the per-demonstration
+    :class:`~lmpromp_ppl.data.core.DemoStatistics` (O(L d^2) memory, built from the compact inputs
+    without the dense design), and the rest the dense :class:`~lmpromp_ppl.data.core.ModelData`.
+    Every form gives the same log density (``tests/test_data_compact.py``).
     Call it once, outside compiled code (the check looks at the values).
     """
     model_name = check_model(model_name)
@@ -109,7 +120,31 @@ def model_inputs(model_name: str, collapsed: str, data: ModelData | PhaseData) -
         shared = shared_design(data)
         if shared is not None:
             return shared
+    if (model_name, collapse) in STATISTICS_FORMS:
+        _check_observations(data)
+        return demo_statistics(data)
     return data.dense()
+
+
+#: (model, collapse) pairs whose declaration evaluates :class:`~lmpromp_ppl.data.core.DemoStatistics`
+#: when the demonstrations do not share one design (every observed-data density but the full mixture's and
+#: the full ProMP's, whose observation sites need the design).
+STATISTICS_FORMS = frozenset({("lmpromp", "none"), ("lmpromp", "w"), ("lmpromp", "wh"), ("lmpromp", "whb"),
+                              ("mixture", "w"), ("mixture", "wh"), ("promp", "w")})
+
+
+def _check_observations(data: ModelData | PhaseData) -> None:
+    """The value checks of :func:`~lmpromp_ppl.models.lmpromp.masked_observations` without its dense design."""
+    if isinstance(data, ModelData):
+        masked_observations(data)
+        return
+    observed = np.asarray(data.observed)
+    if not np.all((observed == 0) | (observed == 1)):
+        raise DataError("mask must contain only 0 and 1")
+    if not np.all(np.isfinite(np.asarray(data.values)[observed == 1])):
+        raise DataError("observed entries of y contain NaN or inf")
+    if not np.all(np.isfinite(np.asarray(data.phi))):
+        raise DataError("the basis at the demonstrations' phases contains NaN or inf")
 
 
 def get_model(name: str, collapsed: bool = False, **options) -> Callable[..., None]:
