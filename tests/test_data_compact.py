@@ -262,3 +262,48 @@ def test_inconsistent_compact_inputs_are_refused():
     bad[0, 0, 0] = np.nan
     with pytest.raises(DataError, match="NaN or inf"):
         cavi.sufficient_statistics(compact._replace(values=jnp.asarray(bad)))
+
+
+@pytest.mark.filterwarnings("ignore::lmpromp_ppl.errors.ConvergenceWarning")  # a few steps, on purpose
+def test_nuts_and_svi_never_build_the_dense_design_of_compact_inputs(monkeypatch):
+    """On demonstrations of different lengths, NUTS (collapsed over w and h) and SVI (the autonormal
+    and meanfield guides) run, draw and evaluate their k-hat ratios on the compact inputs and their
+    statistics: a concrete dense design is never built (abstract traces may build an abstract one)."""
+    from lmpromp_ppl.inference.nuts import fit_nuts
+    from lmpromp_ppl.inference.svi import fit_svi
+
+    compact = model_data(_demos((6, 4, 5), seed=6), NUM_BASIS)
+    hyper = HYPER.replace(num_components=1, learn_beta=False)
+    dense_view = PhaseData.dense
+
+    def concrete_dense_refused(self):
+        if not isinstance(self.phi, jax.core.Tracer):
+            raise AssertionError("a concrete dense design was built")
+        return dense_view(self)
+
+    monkeypatch.setattr(PhaseData, "dense", concrete_dense_refused)
+    with pytest.raises(AssertionError, match="concrete dense"):
+        compact.dense()
+    res = fit_nuts("lmpromp", compact, hyper, jax.random.key(0), num_chains=1, num_warmup=30, num_samples=20,
+                   init="uniform")
+    assert res.samples["w"].shape == (1, 20, 3, 2 * NUM_BASIS) and np.all(np.isfinite(res.samples["w"]))
+    for guide in ("autonormal", "meanfield"):
+        fit = fit_svi("lmpromp", compact, hyper, jax.random.key(1), guide=guide, num_steps=200, window=100,
+                      stop_tol=0.0, prepare_draws=0)
+        draws = fit.sample(jax.random.key(2), 5)
+        assert draws["w"].shape == (5, 3, 2 * NUM_BASIS) and np.all(np.isfinite(draws["w"]))
+        log_ratio, _ = fit.importance_log_ratios(jax.random.key(3), 50)
+        assert np.all(np.isfinite(log_ratio))
+
+
+@pytest.mark.filterwarnings("ignore::lmpromp_ppl.errors.ConvergenceWarning")
+def test_svi_on_compact_inputs_follows_the_dense_fit():
+    """The same SVI steps on the compact ragged inputs (statistics) and on their dense view: the
+    loss of every step agrees to rounding (the two forms of the density are equal)."""
+    from lmpromp_ppl.inference.svi import fit_svi
+
+    compact = model_data(_demos((6, 4, 5), seed=7), NUM_BASIS)
+    hyper = HYPER.replace(num_components=1)
+    fits = [fit_svi("lmpromp", data, hyper, jax.random.key(4), guide="autonormal", num_steps=100, window=50,
+                    stop_tol=0.0, prepare_draws=0) for data in (compact, compact.dense())]
+    np.testing.assert_allclose(fits[0].loss_trace, fits[1].loss_trace, rtol=1e-8)

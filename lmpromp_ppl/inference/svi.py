@@ -102,8 +102,7 @@ from lmpromp_ppl.inference.svi_guides import (
 )
 from lmpromp_ppl.models.conditionals import draw_integrated_sites
 from lmpromp_ppl.models.hyper import Hyperparameters
-from lmpromp_ppl.models.lmpromp import masked_observations
-from lmpromp_ppl.models.registry import model_inputs, resolve_collapse, site_shapes
+from lmpromp_ppl.models.registry import check_observations, model_inputs, resolve_collapse, site_shapes
 
 __all__ = [
     "GUIDES",
@@ -373,8 +372,8 @@ def fit_svi(
     if not (np.isfinite(stop_tol) and stop_tol >= 0):
         raise LmprompError(f"stop_tol must be non-negative, got {stop_tol!r}")
     collapse = resolve_collapse(model_name, collapsed)
-    data = as_float64(data).dense()
-    masked_observations(data)  # shape and value checks with their own messages
+    data = as_float64(data)  # compact inputs stay compact: the densities evaluate statistics
+    check_observations(data)  # shape and value checks with their own messages
     fixed = {k: jnp.asarray(v, dtype=jnp.float64) for k, v in (fixed or {}).items()}
     model, guide_fn = make_guide(guide, model_name, data, hyper, collapsed=collapse, rank=rank,
                                  fixed_names=tuple(sorted(fixed)))

@@ -16,10 +16,10 @@ from numpyro import handlers
 from numpyro.distributions import constraints
 from numpyro.infer.autoguide import AutoLowRankMultivariateNormal, AutoNormal
 
-from lmpromp_ppl.data.core import ModelData
+from lmpromp_ppl.data.core import ModelData, demo_statistics
 from lmpromp_ppl.errors import LmprompError
 from lmpromp_ppl.models.hyper import Hyperparameters
-from lmpromp_ppl.models.lmpromp import lmpromp_model, masked_observations
+from lmpromp_ppl.models.lmpromp import lmpromp_model
 from lmpromp_ppl.models.registry import model_function, resolve_collapse
 
 __all__ = [
@@ -92,14 +92,12 @@ def meanfield_init(data: ModelData, hyper: Hyperparameters) -> dict[str, np.ndar
     thesis's PCA initialisation); then one pass of the Sec. 4.1.1 formulas for the
     covariances and the Gamma factors given these means.
     """
-    prepared = masked_observations(data)
-    psi, y = np.asarray(prepared.psi), np.asarray(prepared.y)
-    num_demos, _, num_weights = psi.shape
+    stats = demo_statistics(data)  # Psi_i^T Psi_i and Psi_i^T y_i, without a dense design for compact inputs
+    gram, cross = np.asarray(stats.gram), np.asarray(stats.cross)
+    num_demos, num_weights = cross.shape
     num_latent = hyper.latent_dim
     beta = hyper.beta_a0 / hyper.beta_b0 if hyper.learn_beta else hyper.beta
-    gram = np.einsum("lsd,lse->lde", psi, psi)
-    w_hat = np.linalg.solve(beta * gram + np.eye(num_weights),
-                            beta * np.einsum("lsd,ls->ld", psi, y)[..., None])[..., 0]
+    w_hat = np.linalg.solve(beta * gram + np.eye(num_weights), beta * cross[..., None])[..., 0]
     b = w_hat.mean(axis=0)
     centred = w_hat - b
     _, sing, vt = np.linalg.svd(centred, full_matrices=False)

@@ -42,7 +42,7 @@ from lmpromp_ppl.models.promp import promp_model
 
 __all__ = [
     "MODEL_NAMES", "COLLAPSE_CHOICES", "check_model", "resolve_collapse", "model_function", "model_inputs", "get_model",
-    "site_shapes", "STATISTICS_FORMS",
+    "site_shapes", "STATISTICS_FORMS", "check_observations",
 ]
 
 #: The models of docs/cli.md.
@@ -121,7 +121,7 @@ def model_inputs(model_name: str, collapsed: str,
         if shared is not None:
             return shared
     if (model_name, collapse) in STATISTICS_FORMS:
-        _check_observations(data)
+        check_observations(data)
         return demo_statistics(data)
     return data.dense()
 
@@ -133,8 +133,9 @@ STATISTICS_FORMS = frozenset({("lmpromp", "none"), ("lmpromp", "w"), ("lmpromp",
                               ("mixture", "w"), ("mixture", "wh"), ("promp", "w")})
 
 
-def _check_observations(data: ModelData | PhaseData) -> None:
-    """The value checks of :func:`~lmpromp_ppl.models.lmpromp.masked_observations` without its dense design."""
+def check_observations(data: ModelData | PhaseData) -> None:
+    """The value checks of :func:`~lmpromp_ppl.models.lmpromp.masked_observations` without its dense design
+    (raises :class:`~lmpromp_ppl.errors.DataError`)."""
     if isinstance(data, ModelData):
         masked_observations(data)
         return
@@ -180,13 +181,21 @@ def site_shapes(model: Callable[..., None], *args, deterministic: bool = False) 
     where tracing fails, the model runs once on the concrete arguments so that
     its own shape and value errors surface with their messages.
     """
-    def values():
-        trace = handlers.trace(handlers.seed(model, 0)).get_trace(*args)
+    def values(*model_args):
+        trace = handlers.trace(handlers.seed(model, 0)).get_trace(*model_args)
         return {n: s["value"] for n, s in trace.items()
                 if (s["type"] == "sample" and not s["is_observed"]) or (deterministic and s["type"] == "deterministic")}
 
+    # the array leaves of the arguments enter as abstract values (the rest, e.g. hyperparameters, as they are)
+    leaves, treedef = jax.tree.flatten(args)
+    is_array = [isinstance(x, (jax.Array, np.ndarray)) for x in leaves]
+
+    def abstract_values(*arrays):
+        it = iter(arrays)
+        return values(*jax.tree.unflatten(treedef, [next(it) if a else x for x, a in zip(leaves, is_array)]))
+
     try:
-        out = jax.eval_shape(values)
+        out = jax.eval_shape(abstract_values, *[x for x, a in zip(leaves, is_array) if a])
     except Exception:  # noqa: BLE001 - run concretely for the model's own message
-        out = values()
+        out = values(*args)
     return {k: tuple(np.shape(v)) for k, v in out.items()}
