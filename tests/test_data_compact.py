@@ -106,6 +106,24 @@ def test_every_declaration_has_the_same_log_density_on_both_forms(pair, name, co
         np.testing.assert_allclose(float(density(fastest, params)), want, rtol=1e-12, atol=1e-9)
 
 
+def _assert_same_density_and_gradient(model, dense, forms, *, seed, rtol, grad_rtol):
+    """At parameters drawn from the prior, each of ``forms`` gives the dense inputs' log density and gradient."""
+    trace = handlers.trace(handlers.seed(model, jax.random.key(seed))).get_trace(dense, HYPER)
+    params = {k: v["value"] for k, v in trace.items() if v["type"] == "sample" and not v["is_observed"]}
+
+    @jax.jit
+    def value_and_grad(inputs):
+        return jax.value_and_grad(lambda p: log_density(model, (inputs, HYPER), {}, p)[0])(params)
+
+    want, want_grad = value_and_grad(dense)
+    for inputs in forms:
+        got, got_grad = value_and_grad(inputs)
+        np.testing.assert_allclose(float(got), float(want), rtol=rtol)
+        for site in want_grad:
+            np.testing.assert_allclose(np.asarray(got_grad[site]), np.asarray(want_grad[site]),
+                                       rtol=grad_rtol, atol=1e-9 * float(np.max(np.abs(want_grad[site]))))
+
+
 SHARED_MODELS = [("lmpromp", "none"), ("lmpromp", "w"), ("lmpromp", "wh"), ("mixture", "w"), ("mixture", "wh")]
 
 
@@ -121,21 +139,8 @@ def test_shared_design_statistics_give_the_dense_density_and_gradient(name, coll
     assert isinstance(stats, SharedDesign)
     from_dense = shared_design(dense)
     np.testing.assert_allclose(np.sort(from_dense.eig), np.sort(stats.eig), atol=1e-12)
-    model = model_function(name, collapsed)
-    trace = handlers.trace(handlers.seed(model, jax.random.key(3))).get_trace(dense, HYPER)
-    params = {k: v["value"] for k, v in trace.items() if v["type"] == "sample" and not v["is_observed"]}
-
-    @jax.jit
-    def value_and_grad(inputs):
-        return jax.value_and_grad(lambda p: log_density(model, (inputs, HYPER), {}, p)[0])(params)
-
-    want, want_grad = value_and_grad(dense)
-    for inputs in (stats, from_dense):
-        got, got_grad = value_and_grad(inputs)
-        np.testing.assert_allclose(float(got), float(want), rtol=1e-12)
-        for site in want_grad:
-            np.testing.assert_allclose(np.asarray(got_grad[site]), np.asarray(want_grad[site]),
-                                       rtol=1e-9, atol=1e-9 * float(np.max(np.abs(want_grad[site]))))
+    _assert_same_density_and_gradient(model_function(name, collapsed), dense, (stats, from_dense), seed=3,
+                                      rtol=1e-12, grad_rtol=1e-9)
 
 
 STATISTICS_MODELS = [("lmpromp", "none"), ("lmpromp", "w"), ("lmpromp", "wh"), ("lmpromp", "whb"),
@@ -158,21 +163,8 @@ def test_per_demonstration_statistics_give_the_dense_density_and_gradient(name, 
     from_dense = demo_statistics(with_nan)
     for got, want in zip(stats, from_dense):
         np.testing.assert_allclose(np.asarray(got), np.asarray(want), atol=1e-13)
-    model = model_function(name, collapsed)
-    trace = handlers.trace(handlers.seed(model, jax.random.key(5))).get_trace(dense, HYPER)
-    params = {k: v["value"] for k, v in trace.items() if v["type"] == "sample" and not v["is_observed"]}
-
-    @jax.jit
-    def value_and_grad(inputs):
-        return jax.value_and_grad(lambda p: log_density(model, (inputs, HYPER), {}, p)[0])(params)
-
-    want, want_grad = value_and_grad(dense)
-    for inputs in (stats, from_dense):
-        got, got_grad = value_and_grad(inputs)
-        np.testing.assert_allclose(float(got), float(want), rtol=1e-11)
-        for site in want_grad:
-            np.testing.assert_allclose(np.asarray(got_grad[site]), np.asarray(want_grad[site]),
-                                       rtol=1e-8, atol=1e-9 * float(np.max(np.abs(want_grad[site]))))
+    _assert_same_density_and_gradient(model_function(name, collapsed), dense, (stats, from_dense), seed=5,
+                                      rtol=1e-11, grad_rtol=1e-8)
 
 
 def test_shared_design_only_where_every_demonstration_has_the_same_observed_design():

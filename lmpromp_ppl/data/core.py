@@ -315,6 +315,16 @@ def as_float64(data: ModelData | PhaseData) -> ModelData | PhaseData:
     return type(data)._make(jnp.asarray(a, dtype=jnp.float64) for a in data)
 
 
+def _statistics_num_demos(stats) -> int:
+    """L, from the (L, d) cross products of :class:`SharedDesign` and :class:`DemoStatistics`."""
+    return stats.cross.shape[0]
+
+
+def _statistics_num_weights(stats) -> int:
+    """d, from the (L, d) cross products of :class:`SharedDesign` and :class:`DemoStatistics`."""
+    return stats.cross.shape[1]
+
+
 class SharedDesign(NamedTuple):
     r"""Sufficient statistics of demonstrations that share one fully observed design, in its eigenbasis.
 
@@ -343,13 +353,8 @@ class SharedDesign(NamedTuple):
     sq: Array
     count: Array
 
-    @property
-    def num_demos(self) -> int:
-        return self.cross.shape[0]
-
-    @property
-    def num_weights(self) -> int:
-        return self.cross.shape[1]
+    num_demos = property(_statistics_num_demos)
+    num_weights = property(_statistics_num_weights)
 
 
 def gram_eigenbasis(block: Array, num_dofs: int = 1) -> tuple[Array, Array]:
@@ -425,13 +430,8 @@ class DemoStatistics(NamedTuple):
     sq: Array
     count: Array
 
-    @property
-    def num_demos(self) -> int:
-        return self.cross.shape[0]
-
-    @property
-    def num_weights(self) -> int:
-        return self.cross.shape[1]
+    num_demos = property(_statistics_num_demos)
+    num_weights = property(_statistics_num_weights)
 
 
 def demo_statistics(data: "ModelData | PhaseData") -> DemoStatistics:
