@@ -154,6 +154,8 @@ def test_autonormal_returns_contract_draws(data, hyper):
     lowered, context = fit.importance_program(300)
     again, _ = fit.importance_log_ratios(key, 300, (lowered.compile(), context))
     np.testing.assert_array_equal(again, log_ratio)
+    raw, _ = fit.importance_log_ratios(jax.random.key_data(key), 300)  # a raw key: the same particles
+    np.testing.assert_array_equal(raw, log_ratio)
     # the draw program compiled in the background during the fit draws what a program built afresh draws
     assert 9 not in fit.context.draw_programs and DRAWS_AFTER_FIT in fit.context.draw_programs
     background = fit.sample(jax.random.key(7), DRAWS_AFTER_FIT)

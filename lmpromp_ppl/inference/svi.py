@@ -87,7 +87,7 @@ from jax import Array, lax
 from numpyro.infer import SVI, Predictive, Trace_ELBO
 from numpyro.optim import _NumPyroOptim
 
-from lmpromp_ppl._keys import raw_key
+from lmpromp_ppl._keys import raw_key, typed_key
 from lmpromp_ppl._progress import line_reporter
 from lmpromp_ppl.data.core import ModelData, as_float64
 from lmpromp_ppl.errors import ConvergenceWarning, LmprompError
@@ -135,7 +135,7 @@ class SviContext(NamedTuple):
     #: recorded its prototype trace, so drawing from it runs no eager model pass
     programs: tuple | None = None
     #: draw programs compiled (or compiling, as a ``concurrent.futures.Future``) while the fit ran,
-    #: by number of draws (:func:`fit_svi`'s ``draws``)
+    #: by number of draws (:func:`fit_svi`'s ``prepare_draws``)
     draw_programs: Mapping[int, Any] | None = None
 
     def model_and_guide(self):
@@ -215,7 +215,8 @@ class SviResult(NamedTuple):
             lowered, context = self.importance_program(num_draws)
             program = (lowered.compile(), context)
         executable, context = program
-        return np.asarray(executable(jax.random.split(key, num_draws))), context
+        # the program takes typed keys (a raw key gives the same stream)
+        return np.asarray(executable(jax.random.split(typed_key(key), num_draws))), context
 
     def _inputs(self):
         """The model inputs the fit evaluated (:func:`~lmpromp_ppl.models.registry.model_inputs`)."""
