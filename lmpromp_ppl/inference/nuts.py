@@ -188,7 +188,7 @@ from numpyro.infer.reparam import LocScaleReparam
 from numpyro.infer.util import ParamInfo, initialize_model
 
 from lmpromp_ppl._keys import raw_key
-from lmpromp_ppl.data.core import ModelData, as_float64, demo_statistics
+from lmpromp_ppl.data.core import DemoStatistics, ModelData, as_float64, demo_statistics
 from lmpromp_ppl.errors import LmprompError
 from lmpromp_ppl.inference.compiled import lookup, remember
 from lmpromp_ppl.inference.warm_start import START_SITES, WARM_START_MODELS, cavi_start
@@ -493,8 +493,9 @@ def fit_nuts(
     )
     # the potential evaluates the fastest equal form of the data (shared-design or per-demonstration
     # statistics where possible); the draws of the integrated sites use the per-demonstration statistics
-    conditional = demo_statistics(data) if collapse != "none" else None
-    args = (raw_key(key), model_inputs(model_name, collapse, data), conditional, fixed, init_values)
+    inputs = model_inputs(model_name, collapse, data)
+    conditional = None if collapse == "none" else inputs if isinstance(inputs, DemoStatistics) else demo_statistics(data)
+    args = (raw_key(key), inputs, conditional, fixed, init_values)
     cache_key = (config, jax.tree_util.tree_structure(args),
                  tuple((a.shape, a.dtype) for a in jax.tree_util.tree_leaves(args)))
     start = time.perf_counter()

@@ -102,7 +102,8 @@ from lmpromp_ppl.inference.svi_guides import (
 )
 from lmpromp_ppl.models.conditionals import draw_integrated_sites
 from lmpromp_ppl.models.hyper import Hyperparameters
-from lmpromp_ppl.models.registry import check_observations, model_inputs, resolve_collapse, site_shapes
+from lmpromp_ppl.models.lmpromp import check_observations
+from lmpromp_ppl.models.registry import model_inputs, resolve_collapse, site_shapes
 
 __all__ = [
     "GUIDES",

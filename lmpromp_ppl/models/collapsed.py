@@ -282,10 +282,7 @@ def lmpromp_offset_collapsed_model(data: ModelData, hyper: Hyperparameters, obse
     if not observed:
         lmpromp_collapsed_model(data, hyper, collapse_h=True, observed=False)
         return
-    if isinstance(data, DemoStatistics):
-        stats = tuple(data)
-    else:
-        stats = data_statistics(masked_observations(data))
+    stats = data_statistics(data)
     num_weights = stats[1].shape[-1]
     hyper.validate_for(num_weights)
     _, _, M, alpha, beta = global_priors(hyper, num_weights, offset=False)

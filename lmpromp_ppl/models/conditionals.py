@@ -18,7 +18,7 @@ import jax.numpy as jnp
 from jax import Array
 from jax.scipy.linalg import solve_triangular
 
-from lmpromp_ppl.data.core import DemoStatistics, ModelData, PhaseData, demo_statistics
+from lmpromp_ppl.data.core import ModelData, demo_statistics
 from lmpromp_ppl.errors import LmprompError
 from lmpromp_ppl.models.hyper import Hyperparameters
 from lmpromp_ppl.models.lmpromp import MaskedObservations, masked_observations
@@ -194,23 +194,18 @@ def _params_for_draws(
     return sample_shape, flat
 
 
-def _statistics(data) -> tuple[Array, Array, Array, Array]:
-    """:func:`data_statistics` of any form of model inputs: dense, compact (no dense design built) or the
-    statistics themselves (:class:`~lmpromp_ppl.data.core.DemoStatistics`)."""
-    if isinstance(data, (PhaseData, DemoStatistics)):
-        return tuple(demo_statistics(data))
-    return data_statistics(masked_observations(data))
+def data_statistics(data) -> tuple[Array, Array, Array, Array]:
+    """Per demonstration: Psi^T Psi (L, d, d), Psi^T y (L, d), y^T y (L,), count (L,), over the observed entries.
 
-
-def data_statistics(prepared: MaskedObservations) -> tuple[Array, Array, Array, Array]:
-    """Per demonstration: Psi^T Psi (L, d, d), Psi^T y (L, d), y^T y (L,), count (L,)."""
-    psi, y = prepared.psi, prepared.y
-    return (
-        jnp.einsum("lsd,lse->lde", psi, psi),
-        jnp.einsum("lsd,ls->ld", psi, y),
-        jnp.sum(y**2, axis=-1),
-        jnp.sum(prepared.observed, axis=-1).astype(y.dtype),
-    )
+    Of any form of model inputs: dense (checked by :func:`~lmpromp_ppl.models.lmpromp.masked_observations`),
+    masked observations, compact (no dense design built) or the statistics themselves; computed by
+    :func:`~lmpromp_ppl.data.core.demo_statistics`.
+    """
+    if isinstance(data, MaskedObservations):
+        data = ModelData(data.psi, data.y, data.observed.astype(data.y.dtype))
+    elif isinstance(data, ModelData):
+        masked_observations(data)  # the shape and value checks, with their messages
+    return tuple(demo_statistics(data))
 
 
 def offset_marginal(
@@ -297,7 +292,7 @@ def sample_b_given_theta(
     ``params`` holds ``M`` (..., d, V), ``alpha`` (...) and ``beta`` (...) when
     learned; returns (..., d).
     """
-    stats = _statistics(data)
+    stats = data_statistics(data)
     num_weights = stats[1].shape[-1]
     M = jnp.asarray(params["M"])
     sample_shape = M.shape[:-2]
@@ -405,7 +400,7 @@ def sample_w_given_theta(
     -------
     w : (*sample_shape, L, d)
     """
-    stats = _statistics(data)
+    stats = data_statistics(data)
     num_demos, num_weights = stats[1].shape
     model = _infer_model(params) if model is None else model
     sample_shape, flat = _params_for_draws(params, hyper, model, num_weights, num_demos)

@@ -49,7 +49,8 @@ from lmpromp_ppl.models.hyper import Hyperparameters
 _LOG_2PI = math.log(2.0 * math.pi)
 
 __all__ = [
-    "lmpromp_model", "MaskedObservations", "masked_observations", "observation_precision", "observe_y", "global_priors",
+    "lmpromp_model", "MaskedObservations", "masked_observations", "check_observations", "observation_precision",
+    "observe_y", "global_priors",
     "shared_log_likelihood", "statistics_log_likelihood",
 ]
 
@@ -73,6 +74,27 @@ class MaskedObservations(NamedTuple):
 
 def _is_concrete(x) -> bool:
     return not isinstance(x, jax.core.Tracer)
+
+
+def _check_observed_values(mask, y) -> np.ndarray:
+    """The value checks of concrete observations and their mask (any shape); the mask as numpy."""
+    m = np.asarray(mask)
+    if not np.all((m == 0) | (m == 1)):
+        raise DataError("mask must contain only 0 and 1")
+    if not np.all(np.isfinite(np.asarray(y)[m == 1])):
+        raise DataError("observed entries of y contain NaN or inf")
+    return m
+
+
+def check_observations(data: ModelData | PhaseData) -> None:
+    """The checks of :func:`masked_observations` on concrete model inputs, without building a dense design
+    for :class:`~lmpromp_ppl.data.core.PhaseData` (raises :class:`~lmpromp_ppl.errors.DataError`)."""
+    if not isinstance(data, PhaseData):
+        masked_observations(data)
+        return
+    _check_observed_values(data.observed, data.values)
+    if not np.all(np.isfinite(np.asarray(data.phi))):
+        raise DataError("the basis at the demonstrations' phases contains NaN or inf")
 
 
 def masked_observations(data: ModelData) -> MaskedObservations:
@@ -100,11 +122,7 @@ def masked_observations(data: ModelData) -> MaskedObservations:
             f"y {y.shape} and mask {mask.shape} must have shape (L, S) = {psi.shape[:2]}"
         )
     if all(_is_concrete(a) for a in (psi, y, mask)):
-        m = np.asarray(mask)
-        if not np.all((m == 0) | (m == 1)):
-            raise DataError("mask must contain only 0 and 1")
-        if not np.all(np.isfinite(np.asarray(y)[m == 1])):
-            raise DataError("observed entries of y contain NaN or inf")
+        m = _check_observed_values(mask, y)
         if not np.all(np.isfinite(np.asarray(psi)[m == 1])):
             raise DataError("design-matrix rows of observed entries contain NaN or inf")
     observed = mask > 0
@@ -140,11 +158,11 @@ def lmpromp_model(data: ModelData, hyper: Hyperparameters, observed: bool = True
     hyper : hyperparameters (precisions; Gamma shape/rate)
     observed : condition on ``data.y`` (True) or sample ``y`` (prior predictive)
     """
-    shared = isinstance(data, (SharedDesign, DemoStatistics))
-    if shared and not observed:
+    statistics = isinstance(data, (SharedDesign, DemoStatistics))
+    if statistics and not observed:
         raise DataError("simulating demonstrations needs their design: pass ModelData or PhaseData")
-    prepared = None if shared else masked_observations(data)
-    num_demos, num_weights = (data.num_demos, data.num_weights) if shared else prepared.psi.shape[::2]
+    prepared = None if statistics else masked_observations(data)
+    num_demos, num_weights = (data.num_demos, data.num_weights) if statistics else prepared.psi.shape[::2]
     hyper.validate_for(num_weights)
     num_latent = hyper.latent_dim
 
@@ -159,7 +177,7 @@ def lmpromp_model(data: ModelData, hyper: Hyperparameters, observed: bool = True
         )
         if isinstance(data, SharedDesign):
             numpyro.factor("y", shared_log_likelihood(data, w, beta))
-        elif shared:
+        elif statistics:
             numpyro.factor("y", statistics_log_likelihood(data, w, beta))
         else:
             observe_y(prepared, w, beta, observed)

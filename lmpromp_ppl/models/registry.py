@@ -29,20 +29,20 @@ from lmpromp_ppl.data.core import (
     demo_statistics,
     shared_design,
 )
-from lmpromp_ppl.errors import DataError, LmprompError
+from lmpromp_ppl.errors import LmprompError
 from lmpromp_ppl.models.collapsed import (
     lmpromp_collapsed_model,
     lmpromp_offset_collapsed_model,
     mixture_collapsed_model,
     promp_collapsed_model,
 )
-from lmpromp_ppl.models.lmpromp import lmpromp_model, masked_observations
+from lmpromp_ppl.models.lmpromp import check_observations, lmpromp_model
 from lmpromp_ppl.models.mixture import mixture_model
 from lmpromp_ppl.models.promp import promp_model
 
 __all__ = [
     "MODEL_NAMES", "COLLAPSE_CHOICES", "check_model", "resolve_collapse", "model_function", "model_inputs", "get_model",
-    "site_shapes", "STATISTICS_FORMS", "check_observations",
+    "site_shapes", "STATISTICS_FORMS",
 ]
 
 #: The models of docs/cli.md.
@@ -131,21 +131,6 @@ def model_inputs(model_name: str, collapsed: str,
 #: the full ProMP's, whose observation sites need the design).
 STATISTICS_FORMS = frozenset({("lmpromp", "none"), ("lmpromp", "w"), ("lmpromp", "wh"), ("lmpromp", "whb"),
                               ("mixture", "w"), ("mixture", "wh"), ("promp", "w")})
-
-
-def check_observations(data: ModelData | PhaseData) -> None:
-    """The value checks of :func:`~lmpromp_ppl.models.lmpromp.masked_observations` without its dense design
-    (raises :class:`~lmpromp_ppl.errors.DataError`)."""
-    if isinstance(data, ModelData):
-        masked_observations(data)
-        return
-    observed = np.asarray(data.observed)
-    if not np.all((observed == 0) | (observed == 1)):
-        raise DataError("mask must contain only 0 and 1")
-    if not np.all(np.isfinite(np.asarray(data.values)[observed == 1])):
-        raise DataError("observed entries of y contain NaN or inf")
-    if not np.all(np.isfinite(np.asarray(data.phi))):
-        raise DataError("the basis at the demonstrations' phases contains NaN or inf")
 
 
 def get_model(name: str, collapsed: bool = False, **options) -> Callable[..., None]:
