@@ -46,6 +46,7 @@ from lmpromp_ppl.inference.cavi.search import SEARCHES
 from lmpromp_ppl.inference.cavi.state import (
     ACCELERATIONS,
     FAMILIES,
+    LOCAL_FAMILIES,
     CaviHyper,
     CaviInfo,
     CaviState,
@@ -55,8 +56,11 @@ from lmpromp_ppl.inference.cavi.state import (
     hyper_arrays,
     is_mixture,
     lift_single_type,
+    local_of,
+    with_joint_locals,
 )
 from lmpromp_ppl.inference.cavi.updates import (
+    JOINT_UPDATES,
     UPDATES,
     prune,
     update_alpha,
@@ -64,6 +68,7 @@ from lmpromp_ppl.inference.cavi.updates import (
     update_beta,
     update_h,
     update_lam,
+    update_wh,
     update_M,
     update_pi,
     update_w,
@@ -74,9 +79,9 @@ from lmpromp_ppl.inference.cavi.updates import (
 __all__ = [
     "CaviData", "DemoGrams", "SharedGram", "FullCovariance", "EigenCovariance", "sufficient_statistics",
     "FAMILIES", "ACCELERATIONS", "CaviHyper", "hyper_arrays", "CaviState", "CaviInfo", "ExpectedStats", "expected_stats",
-    "family_of", "is_mixture", "lift_single_type",
+    "family_of", "is_mixture", "lift_single_type", "LOCAL_FAMILIES", "local_of", "with_joint_locals",
     "update_w", "update_b", "update_M", "update_h", "update_lam", "update_alpha", "update_beta",
-    "update_z", "update_pi", "prune", "UPDATES", "updates_for",
+    "update_z", "update_pi", "update_wh", "prune", "UPDATES", "JOINT_UPDATES", "updates_for",
     "elbo", "sweep", "step", "Resume", "fresh", "iterate", "compiled_iterate", "run", "RunResult",
     "ridge_weights", "init_state", "init_state_jax", "init_mixture_state",
     "fit", "CaviFit", "SEARCHES",

@@ -65,6 +65,8 @@ def extrapolate(old: CaviState, new: CaviState, eta: Array) -> CaviState:
         fields["M_var"] = _log(old.M_var, new.M_var, eta)
     if isinstance(new.w_cov, (DiagonalCovariance, EigenCovariance)):
         fields["w_cov"] = new.w_cov._replace(variances=_log(old.w_cov.variances, new.w_cov.variances, eta))
+    if new.wh_cov is not None:  # any cross covariance is a member of the joint local family
+        fields["wh_cov"] = _linear(old.wh_cov, new.wh_cov, eta)
     if new.pi_conc is not None:
         fields["pi_conc"] = _log(old.pi_conc, new.pi_conc, eta)
     extrapolated = new._replace(**fields)

@@ -49,6 +49,8 @@ __all__ = [
     "logdet_psd",
     "gram_quadratic",
     "gram_trace",
+    "gram_sandwich",
+    "cov_apply",
 ]
 
 
@@ -280,3 +282,24 @@ def gram_trace(gram: DemoGrams | SharedGram | DiagonalGram, cov: Covariance) -> 
     raise TypeError(
         f"weight covariance {type(cov).__name__} does not match the data path {type(gram).__name__}"
     )
+
+
+def gram_sandwich(gram: DemoGrams | SharedGram | DiagonalGram, x: Array, y: Array) -> Array:
+    """(L, V, V) :math:`X_i^T \\Psi_i^T\\Psi_i Y_i` for (L, d, V) x and y."""
+    if isinstance(gram, DiagonalGram):
+        return jnp.einsum("idu,d,idv->iuv", x, gram.eigvals, y)
+    if isinstance(gram, SharedGram):
+        rx = jnp.einsum("dj,idv->ijv", gram.basis, x)
+        ry = jnp.einsum("dj,idv->ijv", gram.basis, y)
+        return jnp.einsum("iju,j,ijv->iuv", rx, gram.eigvals, ry)
+    return jnp.einsum("idu,ide,iev->iuv", x, gram.matrices, y)
+
+
+def cov_apply(cov: Covariance, x: Array) -> Array:
+    """(L, d, V) :math:`\\Sigma_{w_i} X` for one (d, V) x, whatever the storage."""
+    if isinstance(cov, DiagonalCovariance):
+        return cov.variances[:, :, None] * x[None]
+    if isinstance(cov, EigenCovariance):
+        rotated = cov.basis.T @ x  # (d, V)
+        return jnp.einsum("dj,ij,jv->idv", cov.basis, cov.variances, rotated)
+    return jnp.einsum("ide,ev->idv", cov.matrices, x)

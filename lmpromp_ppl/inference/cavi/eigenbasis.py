@@ -56,6 +56,7 @@ def to_eigenbasis(state: CaviState, data: CaviData) -> tuple[CaviState, CaviData
         w_cov=DiagonalCovariance(state.w_cov.variances),
         b_mean=state.b_mean @ basis,
         M_mean=jnp.einsum("dj,kdv->kjv", basis, state.M_mean),
+        wh_cov=None if state.wh_cov is None else jnp.einsum("dj,ikdv->ikjv", basis, state.wh_cov),
     )
     return rotated, data._replace(psi_t_y=data.psi_t_y @ basis, gram=DiagonalGram(data.gram.eigvals))
 
@@ -67,4 +68,5 @@ def from_eigenbasis(state: CaviState, basis: Array) -> CaviState:
         w_cov=EigenCovariance(basis, state.w_cov.variances),
         b_mean=state.b_mean @ basis.T,
         M_mean=jnp.einsum("dj,kjv->kdv", basis, state.M_mean),
+        wh_cov=None if state.wh_cov is None else jnp.einsum("dj,ikjv->ikdv", basis, state.wh_cov),
     )

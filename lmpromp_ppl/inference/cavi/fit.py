@@ -15,7 +15,13 @@ from lmpromp_ppl.inference.cavi.data import check_model_data, sufficient_statist
 from lmpromp_ppl.inference.cavi.init import init_mixture_state, init_state
 from lmpromp_ppl.inference.cavi.restarts import CaviFit, best_of_restarts, check_options
 from lmpromp_ppl.inference.cavi.search import SEARCHES, fit_with_search
-from lmpromp_ppl.inference.cavi.state import check_acceleration, check_family, hyper_arrays
+from lmpromp_ppl.inference.cavi.state import (
+    check_acceleration,
+    check_family,
+    check_local,
+    hyper_arrays,
+    with_joint_locals,
+)
 from lmpromp_ppl.models.hyper import Hyperparameters
 
 __all__ = ["fit"]
@@ -37,6 +43,7 @@ def fit(
     search: str | None = None,
     max_moves: int | None = None,
     accelerate: str = "scale",
+    local: str = "meanfield",
 ) -> CaviFit:
     """Fit the LMProMP (``mixture=False``, Sec. 4.1) or the mixture of LMProMPs (Sec. 4.2) by CAVI.
 
@@ -80,6 +87,9 @@ def fit(
         design, of each eigen-direction of the weights; then an over-relaxed step,
         kept when it raises the bound, :mod:`.accelerate`), ``"overrelax"`` (the
         over-relaxed step only) or ``"none"`` (the thesis's plain sweeps)
+    local : the family of the local factors (:data:`~lmpromp_ppl.inference.cavi.LOCAL_FAMILIES`):
+        ``"meanfield"`` (the thesis's q(w_i) q(h_i), default) or ``"joint"`` (one joint
+        Gaussian q(w_i, h_i) per demonstration; the single type only)
 
     Returns
     -------
@@ -90,6 +100,9 @@ def fit(
     check_family(family)
     check_options(tol, max_iter, num_restarts)
     check_acceleration(accelerate)
+    check_local(local)
+    if mixture and local != "meanfield":
+        raise LmprompError("the joint local family is derived for the single-type LMProMP, not for the mixture")
     if not mixture:
         given = [name for name, value in (("prune_threshold", prune_threshold), ("search", search),
                                           ("max_moves", max_moves)) if value is not None]
@@ -119,7 +132,8 @@ def fit(
     label = "CAVI mixture" if mixture else "CAVI"
     with reporter(progress, int(max_iter) * int(num_restarts), label) as callback:
         if not mixture:
-            starts = (init_state(cavi_data, hyper, key=None if r == 0 else keys[r], family=family)
+            lift = with_joint_locals if local == "joint" else (lambda s: s)  # noqa: E731
+            starts = (lift(init_state(cavi_data, hyper, key=None if r == 0 else keys[r], family=family))
                       for r in range(num_restarts))
             return best_of_restarts(starts, cavi_data, hyper_arr, tol, max_iter, callback)
         starts = [init_mixture_state(cavi_data, hyper, keys[r], family=family) for r in range(num_restarts)]

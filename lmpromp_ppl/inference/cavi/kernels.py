@@ -28,6 +28,7 @@ from lmpromp_ppl.inference.cavi.data import (
 __all__ = [
     "w_posterior",
     "h_posterior",
+    "joint_posterior",
     "b_posterior",
     "M_columns_posterior",
     "M_rows_posterior",
@@ -82,6 +83,28 @@ def h_posterior(
     return mean, cov
 
 
+def joint_posterior(
+    alpha_mean: Array, MtM: Array, M_mean: Array, offset: Array, a: Array, WM: Array, gamma: Array
+) -> tuple[Array, Array, Array, Array]:
+    """q*(w_i, h_i) of the joint local family from q*(w_i) with h_i integrated out of its prior mean.
+
+    ``a`` (L, d) and ``W`` are that q*(w_i)'s mean and covariance, ``offset`` is
+    :math:`a_i - \\mu_b` and ``WM`` is :math:`W_i\\bar M` (L, d, V).  Returns
+    :math:`\\mu_{w_i}`, :math:`\\mu_{h_i}`, :math:`S_i` and :math:`C_i` of
+    :func:`~lmpromp_ppl.inference.cavi.updates.update_wh`.
+    """
+    V = MtM.shape[0]
+    B = alpha_mean * WM
+    precision = alpha_mean * MtM[None] - alpha_mean * jnp.einsum("dv,idu->ivu", M_mean, B) + gamma * jnp.eye(V)
+    chol = jnp.linalg.cholesky(precision)
+    solve = jax.vmap(lambda c, rhs: cho_solve((c, True), rhs))
+    S = solve(chol, jnp.broadcast_to(jnp.eye(V), precision.shape))
+    S = 0.5 * (S + jnp.swapaxes(S, -1, -2))
+    h = solve(chol, alpha_mean * offset @ M_mean)
+    w = a + jnp.einsum("idv,iv->id", B, h)
+    return w, h, S, jnp.einsum("idu,iuv->idv", B, S)
+
+
 def b_posterior(
     weights: Array, alpha_mean: Array, w_mean: Array, h_mean: Array, M_mean: Array, lambda0: Array
 ) -> tuple[Array, Array]:
@@ -92,7 +115,8 @@ def b_posterior(
 
 
 def M_columns_posterior(
-    weights: Array, alpha_mean: Array, hhT: Array, offset: Array, h_mean: Array, lam_mean: Array
+    weights: Array, alpha_mean: Array, hhT: Array, offset: Array, h_mean: Array, lam_mean: Array,
+    cross: Array | None = None,
 ) -> tuple[Array, Array]:
     """Joint column-wise q*(m_1..m_V) from S = sum r_i E[h_i h_i^T], R = sum r_i (mu_wi - mu_b) mu_hi^T.
 
@@ -100,7 +124,7 @@ def M_columns_posterior(
     :math:`\\sigma_{m_v} = (\\bar\\alpha S_{vv} + \\bar\\lambda_v)^{-1}`.
     """
     S = jnp.einsum("i,iuv->uv", weights, hhT)
-    R = jnp.einsum("i,id,iv->dv", weights, offset, h_mean)
+    R = jnp.einsum("i,id,iv->dv", weights, offset, h_mean) + (0.0 if cross is None else cross)
     A = alpha_mean * S + jnp.diag(lam_mean)
     mean = jnp.linalg.solve(A, alpha_mean * R.T).T
     var = 1.0 / (alpha_mean * jnp.diagonal(S) + lam_mean)
@@ -108,11 +132,12 @@ def M_columns_posterior(
 
 
 def M_rows_posterior(
-    weights: Array, alpha_mean: Array, hhT: Array, offset: Array, h_mean: Array, lam_mean: Array
+    weights: Array, alpha_mean: Array, hhT: Array, offset: Array, h_mean: Array, lam_mean: Array,
+    cross: Array | None = None,
 ) -> tuple[Array, Array]:
     """Row-wise q*(M): rows :math:`\\mathcal N(\\mu_{j\\cdot}, A^{-1})`, :math:`A = \\bar\\alpha S + \\operatorname{diag}\\bar\\lambda`, :math:`\\bar M = \\bar\\alpha R A^{-1}`."""
     S = jnp.einsum("i,iuv->uv", weights, hhT)
-    R = jnp.einsum("i,id,iv->dv", weights, offset, h_mean)
+    R = jnp.einsum("i,id,iv->dv", weights, offset, h_mean) + (0.0 if cross is None else cross)
     V = S.shape[0]
     A = alpha_mean * S + jnp.diag(lam_mean)
     chol = jnp.linalg.cholesky(A)

@@ -32,6 +32,20 @@ when beta is learned.  Two families for M (:data:`FAMILIES`):
   ``M_var`` is (K, V, V).  The column-wise family is the special case of a
   diagonal :math:`\Sigma_{M_k}`.
 
+Two families of the local factors (:data:`LOCAL_FAMILIES`):
+
+* ``"meanfield"`` (thesis eq. 4.3, the default): :math:`q(w_i)\prod_k q(h_{ik})`;
+  ``wh_cov`` is ``None``;
+* ``"joint"`` (the single type): one joint Gaussian :math:`q(w_i, h_i)` per
+  demonstration, kept as :math:`q(h_i) = \mathcal N(\mu_{h_i}, S_i)` (``h_cov``) and
+  :math:`q(w_i \mid h_i) = \mathcal N(\mu_{w_i} + C_iS_i^{-1}(h_i - \mu_{h_i}), W_i)`, with
+  ``w_cov`` the conditional covariance :math:`W_i` and ``wh_cov`` the cross covariance
+  :math:`C_i = \operatorname{Cov}(w_i, h_i)` (L, K, d, V).  The marginal covariance of
+  :math:`w_i` is :math:`W_i + C_iS_i^{-1}C_i^T`; every (W, S, C) with W and S positive
+  definite is a member, and C = 0 is the mean-field family.  The cut that the
+  mean-field family makes between :math:`w_i` and :math:`h_i` is the one that moves
+  latent variance into :math:`1/\alpha` (``docs/derivation.md``, structured family).
+
 Removed components (Sec. 4.2.1) are kept in the arrays and switched off by the
 boolean ``active`` mask: they get :math:`r_{ik} = 0`, their factors are frozen,
 and their terms are left out of the bound (the bound of the declared model for
@@ -56,6 +70,10 @@ from lmpromp_ppl.models.hyper import Hyperparameters
 __all__ = [
     "FAMILIES",
     "check_family",
+    "LOCAL_FAMILIES",
+    "check_local",
+    "with_joint_locals",
+    "local_of",
     "CaviHyper",
     "hyper_arrays",
     "ACCELERATIONS",
@@ -72,12 +90,20 @@ __all__ = [
 
 #: Names of the families of q(M): the thesis's column-wise isotropic one (default) and the row-wise one.
 FAMILIES = ("columnwise", "rowwise")
+#: Names of the families of the local factors: the thesis's q(w_i) q(h_i) (default) and the joint q(w_i, h_i).
+LOCAL_FAMILIES = ("meanfield", "joint")
 
 
 def check_family(family: str) -> None:
     """Refuse an unknown family of q(M)."""
     if family not in FAMILIES:
         raise LmprompError(f"unknown family {family!r} for q(M); choose from {list(FAMILIES)}")
+
+
+def check_local(local: str) -> None:
+    """Refuse an unknown family of the local factors."""
+    if local not in LOCAL_FAMILIES:
+        raise LmprompError(f"unknown local family {local!r}; choose from {list(LOCAL_FAMILIES)}")
 
 
 class CaviHyper(NamedTuple):
@@ -162,6 +188,9 @@ class CaviState(NamedTuple):
     beta_shape, beta_rate : () Gamma q(beta), used when ``beta_learned``
     beta_learned : () bool, beta has the factor q(beta) (else the fixed ``hyper.beta``)
     active : (K,) bool, False for removed components
+    wh_cov : (L, K, d, V) the cross covariances :math:`C_{ik} = \\operatorname{Cov}(w_i, h_{ik})` of the
+        joint local family (``w_cov`` then holds the conditional covariances); ``None``
+        for the mean-field family
 
     Whether beta is learned is an array (not the pytree structure) so that
     fixed and learned beta share compiled code.
@@ -185,6 +214,7 @@ class CaviState(NamedTuple):
     beta_rate: Array
     beta_learned: Array
     active: Array
+    wh_cov: Array | None = None
 
 
 class CaviInfo(NamedTuple):
@@ -196,6 +226,22 @@ class CaviInfo(NamedTuple):
 def family_of(state: CaviState) -> str:
     """``"rowwise"`` when ``M_var`` holds (V, V) covariances, else ``"columnwise"``."""
     return "rowwise" if state.M_var.ndim == 3 else "columnwise"
+
+
+def local_of(state: CaviState) -> str:
+    """``"joint"`` when the state has the joint local family (``wh_cov``), else ``"meanfield"``."""
+    return "meanfield" if state.wh_cov is None else "joint"
+
+
+def with_joint_locals(state: CaviState) -> CaviState:
+    """The same q in the joint local family (cross covariances 0); the single type only."""
+    if state.resp is not None:
+        raise LmprompError("the joint local family is derived for the single-type LMProMP, not for the mixture")
+    if state.wh_cov is not None:
+        return state
+    L, d = state.w_mean.shape
+    K, V = state.lam_shape.shape
+    return state._replace(wh_cov=jnp.zeros((L, K, d, V), jnp.float64))
 
 
 def is_mixture(state: CaviState) -> bool:
@@ -262,7 +308,7 @@ class ExpectedStats(NamedTuple):
     M_col_var : (K, V) :math:`d^{-1}E\\|m_{kv} - \\mu_{kv}\\|^2` (the diagonal of the row covariance)
     MtM : (K, V, V) :math:`E[M_k^TM_k] = \\bar M_k^T\\bar M_k + d\\Sigma_{M_k}`
     hhT : (L, K, V, V) :math:`E[h_{ik}h_{ik}^T]`
-    residual_sq : (L, K) :math:`E\\|w_i - b_k - M_kh_{ik}\\|^2`
+    residual_sq : (L, K) :math:`E\\|w_i - b_k - M_kh_{ik}\\|^2` (with the cross covariances of the joint family)
     beta_mean, log_beta_mean : () :math:`E[\\beta]`, :math:`E[\\log\\beta]` (the fixed value when not learned)
     log_pi_mean : (K,) :math:`E[\\log\\pi_k] = \\psi(\\hat\\kappa_k) - \\psi(\\sum_j\\hat\\kappa_j)`, or None
 
@@ -308,6 +354,10 @@ def expected_stats(state: CaviState, hyper: CaviHyper, *, logs: bool = False) ->
         - 2.0 * jnp.einsum("ikd,kdv,ikv->ik", offset, state.M_mean, state.h_mean)
         + jnp.einsum("kuv,ikvu->ik", MtM, hhT)
     )
+    if state.wh_cov is not None:
+        # joint family: tr Cov(w_i) gains tr(C S^-1 C^T), and E[(w - b)^T M h] gains tr(M^T C)
+        residual_sq = residual_sq + cross_trace(state)[:, None] - 2.0 * jnp.einsum(
+            "kdv,ikdv->ik", state.M_mean, state.wh_cov)
     resp = jnp.ones((L, K)) if state.resp is None else jnp.where(state.active[None], state.resp, 0.0)
     learned = state.beta_learned
     beta_mean = jnp.where(learned, state.beta_shape / state.beta_rate, hyper.beta)
@@ -338,6 +388,17 @@ def expected_stats(state: CaviState, hyper: CaviHyper, *, logs: bool = False) ->
         log_beta_mean=log_beta_mean,
         log_pi_mean=log_pi_mean,
     )
+
+
+def cross_solve(state: CaviState) -> Array:
+    """(L, d, V) :math:`C_iS_i^{-1}` of the joint local family (single type): the regression of w_i on h_i."""
+    C, S = state.wh_cov[:, 0], state.h_cov[:, 0]
+    return jnp.swapaxes(jnp.linalg.solve(S, jnp.swapaxes(C, -1, -2)), -1, -2)
+
+
+def cross_trace(state: CaviState) -> Array:
+    """(L,) :math:`\\operatorname{tr}(C_iS_i^{-1}C_i^T)`, the part of tr Cov(w_i) that the joint family adds to W_i."""
+    return jnp.einsum("idv,idv->i", cross_solve(state), state.wh_cov[:, 0])
 
 
 def keep_active(active: Array, new: Array, old: Array) -> Array:

@@ -49,7 +49,7 @@ import jax
 from jax import Array
 
 from lmpromp_ppl.inference.cavi.data import CaviData
-from lmpromp_ppl.inference.cavi.state import CaviHyper, CaviState, expected_stats
+from lmpromp_ppl.inference.cavi.state import CaviHyper, CaviState, cross_solve, expected_stats
 from lmpromp_ppl.inference.cavi.updates import update_lam
 
 __all__ = ["latent_gain", "latent_scales", "apply_latent_scales", "scale_latent", "direction_scales", "scale_directions"]
@@ -100,7 +100,9 @@ def apply_latent_scales(state: CaviState, t: Array) -> CaviState:
         M_var = state.M_var / (r[:, :, None] * r[:, None, :])
     else:
         M_var = state.M_var / t
-    return state._replace(h_mean=h_mean, h_cov=h_cov, M_mean=M_mean, M_var=M_var)
+    # joint local family: Cov(w_i, r h_i) = C_i R keeps tr(M^T C) and C S^-1 C^T
+    wh_cov = None if state.wh_cov is None else state.wh_cov * r[None, :, None, :]
+    return state._replace(h_mean=h_mean, h_cov=h_cov, M_mean=M_mean, M_var=M_var, wh_cov=wh_cov)
 
 
 def scale_latent(state: CaviState, hyper: CaviHyper) -> CaviState:
@@ -138,6 +140,12 @@ def direction_scales(state: CaviState, data: CaviData, hyper: CaviHyper) -> tupl
         + m**2 @ st.lam_mean[0]
     )
     B = st.beta_mean * jnp.sum(u * (data.psi_t_y - s * state.b_mean[0]), axis=0)
+    if state.wh_cov is not None:
+        # joint local family: row j of C_i scales with c_j; (C S^-1 C^T)_jj enters the data and prior
+        # terms, and the cross term of E||w - b - Mh||^2 is -2 m_j . C_ij
+        C = state.wh_cov[:, 0]
+        extra = jnp.einsum("idv,idv->d", cross_solve(state), C)
+        A = A + st.beta_mean * s * extra + st.alpha_mean[0] * (extra - 2.0 * jnp.einsum("dv,idv->d", m, C))
     safe = A > 0
     A_safe = jnp.where(safe, A, 1.0)
     scales = jnp.where(safe, B / A_safe, 1.0)
@@ -149,7 +157,9 @@ def scale_directions(state: CaviState, data: CaviData, hyper: CaviHyper) -> Cavi
     """Apply :func:`direction_scales` (single type, rotated data); it cannot lower the bound."""
     scales, _ = direction_scales(state, data, hyper)
     b = state.b_mean[0]
-    return state._replace(w_mean=b + scales * (state.w_mean - b), M_mean=state.M_mean * scales[None, :, None])
+    wh_cov = None if state.wh_cov is None else state.wh_cov * scales[None, None, :, None]
+    return state._replace(w_mean=b + scales * (state.w_mean - b), M_mean=state.M_mean * scales[None, :, None],
+                          wh_cov=wh_cov)
 
 
 def _rotation_objective(R: Array, stats, hyper: CaviHyper, L: int, d: int, rowwise: bool) -> Array:
@@ -231,4 +241,6 @@ def rotate_latent(state: CaviState, hyper: CaviHyper) -> CaviState:
         M_var = jnp.einsum("kuv,kvw,kxw->kux", R, state.M_var, R)
     else:
         M_var = jnp.einsum("kuv,kv,kuv->ku", R, state.M_var, R)
-    return update_lam(state._replace(h_mean=h_mean, h_cov=h_cov, M_mean=M_mean, M_var=M_var), None, hyper)
+    wh_cov = None if state.wh_cov is None else jnp.einsum("ikdu,kvu->ikdv", state.wh_cov, R)  # Cov(w, R h)
+    return update_lam(state._replace(h_mean=h_mean, h_cov=h_cov, M_mean=M_mean, M_var=M_var, wh_cov=wh_cov),
+                      None, hyper)

@@ -19,21 +19,23 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from lmpromp_ppl.inference.cavi.data import CaviData, gram_quadratic, gram_trace
+from lmpromp_ppl.inference.cavi.data import CaviData, cov_apply, gram_quadratic, gram_sandwich, gram_trace
 from lmpromp_ppl.inference.cavi.kernels import (
     M_columns_posterior,
     M_rows_posterior,
     b_posterior,
     h_posterior,
+    joint_posterior,
     w_posterior,
 )
-from lmpromp_ppl.inference.cavi.state import CaviHyper, CaviState, expected_stats, keep_active
+from lmpromp_ppl.inference.cavi.state import CaviHyper, CaviState, cross_solve, expected_stats, keep_active
 
 __all__ = [
     "update_w",
     "update_b",
     "update_M",
     "update_h",
+    "update_wh",
     "update_lam",
     "update_alpha",
     "update_beta",
@@ -41,6 +43,7 @@ __all__ = [
     "update_pi",
     "prune",
     "UPDATES",
+    "JOINT_UPDATES",
     "updates_for",
     "data_quadratic",
 ]
@@ -95,7 +98,8 @@ def update_M(state: CaviState, data: CaviData, hyper: CaviHyper) -> CaviState:
     """Update q(M_k) for every active k, in the state's family (Sec. 4.1.1, App. B.1 / B.2 corrected).
 
     With :math:`S_k = \\sum_i r_{ik}E[h_{ik}h_{ik}^T]`,
-    :math:`R_k = \\sum_i r_{ik}(\\mu_{w_i} - \\mu_{b_k})\\mu_{h_{ik}}^T` and
+    :math:`R_k = \\sum_i r_{ik}(\\mu_{w_i} - \\mu_{b_k})\\mu_{h_{ik}}^T` (plus :math:`\\sum_i r_{ik}C_{ik}`
+    in the joint local family: :math:`E[(w_i - b_k)h_{ik}^T]`) and
     :math:`A_k = \\bar\\alpha_kS_k + \\operatorname{diag}(\\bar\\lambda_k)`, both families have
     :math:`\\bar M_kA_k = \\bar\\alpha_kR_k`; column-wise :math:`\\sigma_{kv} = 1/(A_k)_{vv}`,
     row-wise :math:`\\Sigma_{M_k} = A_k^{-1}`.
@@ -110,8 +114,11 @@ def update_M(state: CaviState, data: CaviData, hyper: CaviHyper) -> CaviState:
     st = expected_stats(state, hyper)
     offset = state.w_mean[:, None, :] - state.b_mean[None]
     kernel = M_rows_posterior if state.M_var.ndim == 3 else M_columns_posterior
-    mean, var = jax.vmap(kernel, in_axes=(1, 0, 1, 1, 1, 0))(
-        st.resp, st.alpha_mean, st.hhT, offset, state.h_mean, st.lam_mean
+    # joint local family: E[(w_i - b) h_i^T] gains the cross covariance C_i
+    cross = jnp.zeros_like(state.M_mean) if state.wh_cov is None else jnp.einsum(
+        "ik,ikdv->kdv", st.resp, state.wh_cov)
+    mean, var = jax.vmap(kernel, in_axes=(1, 0, 1, 1, 1, 0, 0))(
+        st.resp, st.alpha_mean, st.hhT, offset, state.h_mean, st.lam_mean, cross
     )
     return state._replace(
         M_mean=keep_active(state.active, mean, state.M_mean),
@@ -143,6 +150,38 @@ def update_h(state: CaviState, data: CaviData, hyper: CaviHyper) -> CaviState:
         h_mean=jnp.where(mask[..., None], mean, state.h_mean),
         h_cov=jnp.where(mask[..., None, None], cov, state.h_cov),
     )
+
+
+@jax.jit
+def update_wh(state: CaviState, data: CaviData, hyper: CaviHyper) -> CaviState:
+    """Update the joint q(w_i, h_i) of the single type (joint local family; ``docs/derivation.md``).
+
+    With q(b), q(M), q(alpha) and q(beta) fixed, :math:`\\log q^*(w_i, h_i)` is quadratic, with precision
+    :math:`\\begin{pmatrix}P_i & -\\bar\\alpha\\bar M\\\\ -\\bar\\alpha\\bar M^T & \\bar\\alpha E[M^TM] + \\gamma I\\end{pmatrix}`,
+    :math:`P_i = \\bar\\alpha I + E[\\beta]\\Psi_i^T\\Psi_i`, and linear term
+    :math:`(E[\\beta]\\Psi_i^Ty_i + \\bar\\alpha\\mu_b,\\ -\\bar\\alpha\\bar M^T\\mu_b)`.  In the
+    parametrisation of :mod:`.state` (Schur complements):
+
+    .. math::
+
+        W_i = P_i^{-1},\\quad a_i = W_i(E[\\beta]\\Psi_i^Ty_i + \\bar\\alpha\\mu_b),\\quad
+        B_i = \\bar\\alpha W_i\\bar M,\\\\
+        S_i = \\big(\\bar\\alpha E[M^TM] + \\gamma I - \\bar\\alpha\\bar M^TB_i\\big)^{-1},\\quad
+        \\mu_{h_i} = S_i\\bar\\alpha\\bar M^T(a_i - \\mu_b),\\quad
+        \\mu_{w_i} = a_i + B_i\\mu_{h_i},\\quad C_i = B_iS_i.
+
+    :math:`W_i` and :math:`a_i` are q*(w_i) of :func:`update_w` with :math:`h_i` integrated out of
+    its prior mean, so the fast path's diagonal :math:`W_i` is kept; the extra cost is
+    :math:`O(LdV^2)`.  :math:`S_i` is positive definite because :math:`\\bar\\alpha W_i \\preceq I`.
+    """
+    st = expected_stats(state, hyper)
+    alpha = st.alpha_mean[0]
+    b = state.b_mean[0]
+    L, d = state.w_mean.shape
+    a, W = w_posterior(data, st.beta_mean, jnp.full((L,), alpha), jnp.broadcast_to(alpha * b, (L, d)))
+    w, h, S, C = joint_posterior(alpha, st.MtM[0], state.M_mean[0], a - b, a, cov_apply(W, state.M_mean[0]),
+                                 hyper.gamma)
+    return state._replace(w_mean=w, w_cov=W, h_mean=h[:, None], h_cov=S[:, None], wh_cov=C[:, None])
 
 
 @jax.jit
@@ -190,13 +229,22 @@ def update_alpha(state: CaviState, data: CaviData, hyper: CaviHyper) -> CaviStat
 
 
 def data_quadratic(state: CaviState, data: CaviData) -> jax.Array:
-    """(L,) :math:`E\\|y_i - \\Psi_iw_i\\|^2` over the observed entries."""
-    return (
+    """(L,) :math:`E\\|y_i - \\Psi_iw_i\\|^2` over the observed entries.
+
+    In the joint local family the marginal covariance of :math:`w_i` is
+    :math:`W_i + C_iS_i^{-1}C_i^T`, whose Gram trace is
+    :math:`\\operatorname{tr}(\\Psi_i^T\\Psi_iW_i) + \\operatorname{tr}(S_i^{-1}C_i^T\\Psi_i^T\\Psi_iC_i)`.
+    """
+    quadratic = (
         data.y_sq
         - 2.0 * jnp.sum(state.w_mean * data.psi_t_y, axis=-1)
         + gram_quadratic(data.gram, state.w_mean)
         + gram_trace(data.gram, state.w_cov)
     )
+    if state.wh_cov is None:
+        return quadratic
+    sandwich = gram_sandwich(data.gram, cross_solve(state), state.wh_cov[:, 0])  # (C S^-1)^T G C
+    return quadratic + jnp.trace(sandwich, axis1=-2, axis2=-1)
 
 
 @jax.jit
@@ -288,11 +336,25 @@ UPDATES = {
 }
 
 
+#: The sweep of the joint local family (single type): q(w_i, h_i) together, then the global factors.
+JOINT_UPDATES = {
+    "wh": update_wh,
+    "b": update_b,
+    "M": update_M,
+    "lam": update_lam,
+    "alpha": update_alpha,
+    "beta": update_beta,
+}
+
+
 def updates_for(state: CaviState) -> dict:
     """The updates of :data:`UPDATES` that apply to ``state``, in sweep order: name -> update.
 
-    ``beta`` is a no-op when beta is fixed; ``z`` and ``pi`` only for the mixture.
+    ``beta`` is a no-op when beta is fixed; ``z`` and ``pi`` only for the mixture; the
+    joint local family (``state.wh_cov``) sweeps :data:`JOINT_UPDATES`.
     """
+    if state.wh_cov is not None:
+        return dict(JOINT_UPDATES)
     if state.resp is not None:
         return dict(UPDATES)
     return {name: update for name, update in UPDATES.items() if name not in ("z", "pi")}
