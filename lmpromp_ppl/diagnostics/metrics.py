@@ -291,33 +291,15 @@ def pareto_khat(log_ratio: np.ndarray) -> tuple[float | None, str]:
 
     Notes
     -----
-    ``arviz_stats``' ``psislw`` smooths the weights :math:`e^{-x}` (the LOO
-    convention, where x is a log-likelihood), so the negated log ratio is
-    passed.  Draws are independent, so ``r_eff = 1``.  When q equals p up to a
-    constant every ratio is the same and no tail can be fitted: ``khat`` is
-    then ``None`` and the note says that the importance weights are constant
-    (which is the ideal case, not a failure).
+    The fit is :func:`lmpromp_ppl.inference.psis.psis` (arviz-stats' ``psislw`` of the
+    negated ratios).  When q equals p up to a constant every ratio is the same and no
+    tail can be fitted: ``khat`` is then ``None`` and the note says that the importance
+    weights are constant (which is the ideal case, not a failure).
     """
-    from arviz_stats.base import array_stats
+    from lmpromp_ppl.inference.psis import psis
 
-    log_ratio = np.asarray(log_ratio, dtype=float).ravel()
-    if log_ratio.size < 25:
-        raise ValueError(f"need at least 25 draws for a Pareto k-hat, got {log_ratio.size}")
-    finite = np.isfinite(log_ratio)
-    if np.any(np.isnan(log_ratio)) or np.any(log_ratio == np.inf):
-        return None, "some log importance ratios are NaN or +inf (q puts mass where p is undefined)"
-    if not np.all(finite):  # -inf: p(theta, y) = 0 at a draw of q; weight 0
-        log_ratio = np.where(finite, log_ratio, np.min(log_ratio[finite]) - 1e3)
-    try:
-        _, khat = array_stats.psislw(-log_ratio, r_eff=1.0)
-    except ValueError as exc:
-        if "All tail values are the same" in str(exc):
-            return None, "importance ratios are constant: q equals the posterior up to its normaliser"
-        raise
-    khat = float(khat)
-    if not np.isfinite(khat):
-        return None, "the generalized Pareto fit did not converge"
-    return khat, ""
+    _, khat, note = psis(log_ratio)
+    return khat, note
 
 
 def khat_verdict(khat: float | None) -> str:

@@ -20,6 +20,7 @@ from lmpromp_ppl.inference.cavi.state import CaviState, cross_solve
 __all__ = [
     "sample_q",
     "log_q",
+    "log_q_locals",
     "point_estimate",
     "w_covariance",
     "responsibilities",
@@ -138,21 +139,14 @@ def log_q(state: CaviState, draws: dict[str, Array]) -> Array:
     mix = state.resp is not None
     act = state.active
     comp = (lambda x: x) if mix else (lambda x: x[:, None])  # noqa: E731
-    h = draws["h"] if mix else draws["h"][:, :, None]
     on = lambda x, axes: jnp.where(act, x, 0.0).sum(axes)  # noqa: E731  (sum over active components)
     M = comp(draws["M"])
     if state.M_var.ndim == 3:  # rows of M_k ~ N(mu_k,j., Sigma_Mk)
         log_M = dist.MultivariateNormal(state.M_mean, state.M_var[:, None]).log_prob(M).sum(-1)
     else:
         log_M = dist.Normal(state.M_mean, jnp.sqrt(state.M_var)[:, None, :]).log_prob(M).sum((-2, -1))
-    if state.wh_cov is None:
-        log_w = dist.MultivariateNormal(state.w_mean, w_covariance(state)).log_prob(draws["w"]).sum(-1)
-    else:  # joint local family: q(h_i) q(w_i | h_i)
-        mean = state.w_mean + jnp.einsum("idv,niv->nid", cross_solve(state), h[:, :, 0] - state.h_mean[:, 0])
-        log_w = dist.MultivariateNormal(mean, cov_matrices(state.w_cov)).log_prob(draws["w"]).sum(-1)
     terms = [
-        log_w,
-        on(dist.MultivariateNormal(state.h_mean, state.h_cov).log_prob(h), (-2, -1)),
+        log_q_locals(state, draws),
         on(dist.Normal(state.b_mean, jnp.sqrt(state.b_var)[:, None]).log_prob(comp(draws["b"])).sum(-1), -1),
         on(dist.Gamma(state.alpha_shape, state.alpha_rate).log_prob(comp(draws["alpha"])), -1),
         on(dist.Gamma(state.lam_shape, state.lam_rate).log_prob(comp(draws["lam"])).sum(-1), -1),
@@ -167,6 +161,22 @@ def log_q(state: CaviState, draws: dict[str, Array]) -> Array:
         terms.append(dist.Dirichlet(state.pi_conc).log_prob(draws["pi"]))
         terms.append(dist.Categorical(probs=state.resp).log_prob(draws["z"]).sum(-1))
     return sum(terms)
+
+
+def log_q_locals(state: CaviState, draws: dict[str, Array]) -> Array:
+    """log q of the local factors at draws of ``w`` and ``h`` (leading draw axis), summed over demonstrations.
+
+    Mean-field: q(w_i) q(h_ik) over active components; joint local family: q(h_i) q(w_i | h_i).
+    """
+    import numpyro.distributions as dist
+
+    mix = state.resp is not None
+    h = draws["h"] if mix else draws["h"][:, :, None]
+    log_h = jnp.where(state.active, dist.MultivariateNormal(state.h_mean, state.h_cov).log_prob(h), 0.0).sum((-2, -1))
+    if state.wh_cov is None:
+        return log_h + dist.MultivariateNormal(state.w_mean, w_covariance(state)).log_prob(draws["w"]).sum(-1)
+    mean = state.w_mean + jnp.einsum("idv,niv->nid", cross_solve(state), h[:, :, 0] - state.h_mean[:, 0])
+    return log_h + dist.MultivariateNormal(mean, cov_matrices(state.w_cov)).log_prob(draws["w"]).sum(-1)
 
 
 def point_estimate(state: CaviState) -> dict[str, Array]:
