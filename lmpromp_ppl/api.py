@@ -80,8 +80,10 @@ def fit(
         :class:`~lmpromp_ppl.data.PreparedDataset` (:func:`~lmpromp_ppl.data.prepare_dataset`) whose model inputs are used as
         they are (``num_basis``, ``width`` and ``standardise`` must then be left at their defaults)
     model : ``"promp"``, ``"lmpromp"`` or ``"mixture"``
-    engine : ``"cavi"``, ``"nuts"``, ``"svi_meanfield"``, ``"svi_autonormal"`` or ``"svi_lowrank"``
-    hyper : hyperparameters; default: the ``default`` preset for CAVI, the
+    engine : ``"cavi"``, ``"cavi_lr"`` (CAVI with the joint local family and linear-response
+        covariances, the single-type LMProMP), ``"nuts"``, ``"svi_meanfield"``, ``"svi_autonormal"``
+        or ``"svi_lowrank"``
+    hyper : hyperparameters; default: the ``default`` preset for CAVI (both engines), the
         ``proper`` preset for NUTS and SVI (near-improper Gamma priors cannot be
         sampled); both learn the noise precision beta (docs/defaults.md)
     num_basis : basis functions per DoF (J), or ``"auto"``: the J of
@@ -102,7 +104,7 @@ def fit(
     """
     check_fit(model, engine, options)
     if hyper is None:
-        hyper = preset("default" if engine == "cavi" else "proper")
+        hyper = preset("default" if engine in ("cavi", "cavi_lr") else "proper")
     if isinstance(data, PreparedDataset):
         if num_basis is not None or width != DEFAULT_WIDTH or not standardise:
             raise LmprompError("a PreparedDataset fixes num_basis, width and the scaling; do not pass them")
@@ -141,6 +143,8 @@ def _fit_prepared(prepared: PreparedDataset, model, engine, hyper, *, seed, prog
     key = jax.random.key(seed)
     if engine == "cavi":
         result = _cavi_result(mdata, key, progress, common, options, raw.labels)
+    elif engine == "cavi_lr":
+        result = _cavi_lr_result(mdata, key, progress, common, options)
     elif engine == "nuts":
         result = _nuts_result(mdata, key, progress, common, options)
     else:
@@ -246,6 +250,35 @@ def _cavi_result(mdata, key, progress, common, options, labels=None) -> FitResul
         optimization={"elbo": np.asarray(res.elbo_trace)},
         summary=summary,
         state=state,
+    )
+
+
+def _cavi_lr_result(mdata, key, progress, common, options) -> FitResult:
+    from lmpromp_ppl.inference import cavi
+
+    res = run_engine("cavi_lr", common["model"], mdata, common["hyper"], key, progress=progress, **options)
+    base = res.fit
+    summary = {
+        "elbo": float(base.elbo),
+        "elbo_trace": np.asarray(base.elbo_trace).tolist(),
+        "iterations": int(base.iterations),
+        "converged": bool(base.converged),
+        "seconds": float(base.seconds + res.lr_seconds),
+        "compile_seconds": float(base.compile_seconds + res.lr_compile_seconds),
+        "active_latent_dims": cavi.active_latent_dims(base.state),
+        "linear_response": {"seconds": float(res.lr_seconds), "cg_residual": float(res.lr.residual),
+                            "psis_khat": res.psis_khat, "psis_note": res.psis_note,
+                            "importance_resampled": bool(res.resampled)},
+    }
+    point = {k: np.asarray(v) for k, v in cavi.point_estimate(base.state).items()}
+    return FitResult(
+        **common,
+        sampler=res.sample,
+        log_density=res.log_density,
+        point=point,
+        optimization={"elbo": np.asarray(base.elbo_trace)},
+        summary=summary,
+        state=res,
     )
 
 

@@ -182,7 +182,7 @@ def _state_from_dataset(ds: xr.Dataset):
 
     from lmpromp_ppl.inference import cavi
 
-    if ds.attrs["state_type"] not in ("CaviState", "MixtureState"):
+    if ds.attrs["state_type"] not in ("CaviState", "MixtureState"):  # (LinearResponse is read by load)
         raise LmprompError(f"unknown CAVI state type {ds.attrs['state_type']!r} in the saved fit")
     covs = {"FullCovariance": cavi.FullCovariance, "EigenCovariance": cavi.EigenCovariance}
     fields = {}
@@ -378,6 +378,9 @@ class FitResult:
             ).assign_coords(draw_coord)
         if self.engine == "cavi" and self.state is not None and hasattr(self.state, "_asdict"):
             groups["variational"] = _state_dataset(self.state)
+        if self.engine == "cavi_lr" and self.state is not None and hasattr(self.state, "lr"):
+            groups["variational"] = _state_dataset(self.state.state)
+            groups["linear_response"] = _state_dataset(self.state.lr)
         tree = xr.DataTree.from_dict(groups)
         tree.attrs.update(self._attrs())
         return tree
@@ -495,4 +498,12 @@ def load(path: str | Path) -> FitResult:
         result.state = state
         result.sampler = lambda k, n: cavi.sample_q(k, state, n)
         result.log_density = lambda draws: cavi.log_q(state, draws)
+    if "linear_response" in tree.children:  # cavi_lr: new draws from the linear-response Gaussian
+        from lmpromp_ppl.inference import cavi
+        from lmpromp_ppl.inference.cavi.linear_response import log_q_lr
+
+        ds = tree["linear_response"].to_dataset()
+        lr = cavi.LinearResponse(**{name: np.asarray(ds[name].values) for name in cavi.LinearResponse._fields})
+        result.sampler = lambda k, n: cavi.sample_lr(k, lr, state, n, bool(state.beta_learned))
+        result.log_density = lambda draws: log_q_lr(lr, state, draws)
     return result

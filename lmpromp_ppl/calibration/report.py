@@ -100,7 +100,8 @@ def write_sbc_report(
         "problem": dict(problems),
         "num_draws": int(num_draws),
         "engines": {f"{m}/{e}": {"replicates": int(len(v["indices"])), "seconds": v["seconds"],
-                                 "not_converged": v["not_converged"], "divergences": v["divergences"]}
+                                 "not_converged": v["not_converged"], "divergences": v["divergences"],
+                                 **({"importance": v["importance"]} if "importance" in v else {})}
                     for (m, e), v in sorted(collected.items())},
         "rows": rows,
         "vsbc_numpyro": vsbc,

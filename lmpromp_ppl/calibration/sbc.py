@@ -83,10 +83,12 @@ ENGINES = registry.ENGINES
 #: The simulated problems' models and the engines offered for each (the registry's pairs).
 MODEL_ENGINES = {model: registry.engines_for(model) for model in ("lmpromp", "promp")}
 #: Fixed per-engine stream numbers of the replicates' keys (independent of the order of ENGINES).
-_KEY_STREAM = {"cavi": 0, "nuts": 1, "svi_meanfield": 2, "svi_autonormal": 3, "svi_lowrank": 4}
+_KEY_STREAM = {"cavi": 0, "nuts": 1, "svi_meanfield": 2, "svi_autonormal": 3, "svi_lowrank": 4, "cavi_lr": 5}
+#: The engines whose replicates are fitted together in one vmapped program.
+BATCHED_ENGINES = ("cavi", "cavi_lr")
 
 DEFAULT_ENGINES = {
-    "lmpromp": ("cavi", "nuts", "svi_meanfield"),
+    "lmpromp": ("cavi", "cavi_lr", "nuts", "svi_meanfield"),
     "promp": ("nuts", "svi_autonormal"),
 }
 
@@ -334,6 +336,8 @@ def sbc_task(spec: Mapping[str, Any]) -> dict[str, Any]:
                     "seconds": fit.seconds / len(indices)}
             rng = np.random.default_rng([seed, index, engine_id])
             records.append(_replicate_record(problem, index, truth, {k: v[r] for k, v in draws.items()}, rng, info))
+    elif engine == "cavi_lr":
+        records = _cavi_lr_records(problem, seed, indices, simulated, options, engine_id)
     else:
         for index, (truth, data) in zip(indices, simulated):
             key = jax.random.fold_in(jax.random.fold_in(jax.random.key(seed), index), 1000 + engine_id)
@@ -341,6 +345,41 @@ def sbc_task(spec: Mapping[str, Any]) -> dict[str, Any]:
             rng = np.random.default_rng([seed, index, engine_id])
             records.append(_replicate_record(problem, index, truth, draws, rng, info))
     return {"engine": engine, "model": problem.model, "replicates": records}
+
+
+def _cavi_lr_records(problem, seed, indices, simulated, options, engine_id) -> list[dict]:
+    """``cavi_lr`` replicates: one vmapped joint-family fit and linear response, then per replicate the
+    importance ratios on the collapsed model and (k-hat < 0.7, ``resample="auto"``) resampled draws."""
+    from lmpromp_ppl.inference.cavi import fit_cavi_batched, linear_response_batched
+    from lmpromp_ppl.inference.cavi.importance import POOL, global_draws, global_log_ratios
+    from lmpromp_ppl.inference.psis import KHAT_RESAMPLE, psis
+    from lmpromp_ppl.models.registry import model_inputs
+
+    options = {"tol": 1e-8, "max_iter": 2000, "family": "rowwise", "resample": "auto", **options}
+    resample = options.pop("resample")
+    hyper = problem.hyper()
+    fit = fit_cavi_batched([data for _, data in simulated], hyper, local="joint", **options)
+    lr, lr_seconds, _ = linear_response_batched(fit, hyper)
+    d, V = problem.num_dofs * problem.num_basis, problem.latent_dim
+    records = []
+    for r, (index, (truth, data)) in enumerate(zip(indices, simulated)):
+        key = jax.random.fold_in(jax.random.fold_in(jax.random.key(seed), index), 1000 + engine_id)
+        k_ratio, k_pick = jax.random.split(key)
+        one = jax.tree.map(lambda leaf: leaf[r], lr)
+        pool, ratios = global_log_ratios(k_ratio, one, model_inputs("lmpromp", "wh", data), hyper, POOL, False)
+        log_weights, khat, _ = psis(ratios)
+        resampled = resample == "auto" and khat is not None and khat < KHAT_RESAMPLE
+        if resampled:
+            pick = np.asarray(jax.random.choice(k_pick, POOL, (problem.num_draws,), p=jnp.exp(log_weights)))
+            draws = {k: np.asarray(v)[pick] for k, v in pool.items()}
+        else:
+            draws = {k: np.asarray(v) for k, v in global_draws(k_pick, one, problem.num_draws, False, d, V).items()}
+        info = {"converged": bool(fit.converged[r]), "iterations": int(fit.iterations[r]),
+                "seconds": (fit.seconds + lr_seconds) / len(indices), "psis_khat": khat,
+                "importance_resampled": bool(resampled)}
+        rng = np.random.default_rng([seed, index, engine_id])
+        records.append(_replicate_record(problem, index, truth, draws, rng, info))
+    return records
 
 
 def sbc_tasks(
@@ -367,7 +406,7 @@ def sbc_tasks(
                 f"engine {engine!r} is not offered for model {problem.model!r}; "
                 f"choose from {list(MODEL_ENGINES[problem.model])}"
             )
-        size = max(1, int(cavi_batch)) if engine == "cavi" else 1
+        size = max(1, int(cavi_batch)) if engine in BATCHED_ENGINES else 1
         for start in range(0, int(num_replicates), size):
             indices = list(range(start, min(start + size, int(num_replicates))))
             task_id = f"sbc-{problem.model}-{engine}-{indices[0]:04d}"
@@ -390,6 +429,8 @@ class _Collected:
     seconds: float = 0.0
     not_converged: int = 0
     divergences: int = 0
+    psis_khat: list = field(default_factory=list)
+    resampled: int = 0
 
 
 def collect(results: Iterable[Mapping[str, Any]]) -> dict[tuple[str, str], dict[str, Any]]:
@@ -405,11 +446,18 @@ def collect(results: Iterable[Mapping[str, Any]]) -> dict[tuple[str, str], dict[
             group.seconds += float(record.get("seconds", 0.0))
             group.not_converged += int(not record.get("converged", True))
             group.divergences += int(record.get("divergences", 0))
+            if "psis_khat" in record:  # cavi_lr: the importance diagnostics of each replicate
+                group.psis_khat.append(np.nan if record["psis_khat"] is None else float(record["psis_khat"]))
+                group.resampled += int(bool(record.get("importance_resampled")))
     out = {}
     for key, group in groups.items():
         order = np.argsort(group.indices)
         entry: dict[str, Any] = {"indices": np.asarray(group.indices)[order], "seconds": group.seconds,
                                  "not_converged": group.not_converged, "divergences": group.divergences}
+        if group.psis_khat:
+            khat = np.asarray(group.psis_khat)
+            entry["importance"] = {"psis_khat_median": float(np.nanmedian(khat)),
+                                   "below_0.7": int(np.sum(khat < 0.7)), "resampled": group.resampled}
         for what in ("ranks", "vsbc", "truth", "post_mean", "post_sd"):
             entry[what] = {name: np.asarray(v, dtype=float)[order] for name, v in getattr(group, what).items()}
         out[key] = entry

@@ -19,7 +19,7 @@ def compare_command(
     dataset: str = typer.Argument(..., help="Dataset string ('lasa:GShape?every=20', gunpoint, 'synthetic:latent?L=20&seed=0', file.npz); quote it when it holds ? or &."),
     out: Path = typer.Option(..., "--out", help="Output directory (report.md, report.html, metrics.json, figures, <engine>/posterior.nc)."),
     model: str = typer.Option("lmpromp", help="promp, lmpromp or mixture."),
-    engines: str = typer.Option("cavi,svi,nuts", help="Comma-separated engines; 'svi' means all three SVI guides; nuts is required (the reference)."),
+    engines: str = typer.Option("auto", help="Comma-separated engines; 'svi' means all three SVI guides; nuts is required (the reference); auto: every engine offered for the model."),
     latent_dim: Optional[int] = typer.Option(None, "--latent-dim", "-V", min=1, help="Latent dimension V."),
     components: Optional[int] = typer.Option(None, "--components", "-K", min=1, help="Mixture components K."),
     num_basis: Optional[str] = typer.Option(

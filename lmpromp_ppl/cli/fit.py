@@ -49,7 +49,7 @@ def convergence_note(result, messages: list[str]) -> str:
     if s.get("converged") is not False:
         return "; ".join(messages)
     n = s.get("iterations")
-    if result.engine == "cavi":
+    if result.engine in ("cavi", "cavi_lr"):
         import inspect
 
         from lmpromp_ppl.inference import cavi
@@ -71,7 +71,7 @@ def fit_command(
     dataset: str = typer.Argument(..., help="Dataset string (lasa:GShape, gunpoint, 'synthetic:latent?L=20&seed=0', file.npz); quote it when it holds ? or &."),
     out: Path = typer.Option(..., "--out", help="Output directory (posterior.nc, summary.json)."),
     model: str = typer.Option("lmpromp", help="promp, lmpromp or mixture."),
-    engine: str = typer.Option("cavi", help="cavi, nuts, svi_meanfield, svi_autonormal or svi_lowrank."),
+    engine: str = typer.Option("cavi", help="cavi, cavi_lr, nuts, svi_meanfield, svi_autonormal or svi_lowrank."),
     latent_dim: Optional[int] = typer.Option(None, "--latent-dim", "-V", min=1, help="Latent dimension V."),
     components: Optional[int] = typer.Option(None, "--components", "-K", min=1, help="Mixture components K."),
     num_basis: Optional[str] = typer.Option(
@@ -102,7 +102,7 @@ def fit_command(
     """
     from lmpromp_ppl.api import fit
 
-    hyper = hyper_from_options(preset_name or ("default" if engine == "cavi" else "proper"), latent_dim, components, beta, learn_beta)
+    hyper = hyper_from_options(preset_name or ("default" if engine in ("cavi", "cavi_lr") else "proper"), latent_dim, components, beta, learn_beta)
     options = {
         "max_iter": max_iter, "tol": tol, "num_restarts": restarts, "accelerate": accelerate,
         "num_chains": chains, "num_warmup": warmup, "num_samples": samples,

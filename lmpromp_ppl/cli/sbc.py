@@ -75,11 +75,11 @@ def _finish(run, quiet: bool) -> None:
 def sbc_command(
     out: Path = typer.Option(..., "--out", help="Report directory (figures, uniformity.md, calibration.json, tasks/)."),
     models: str = typer.Option("lmpromp,promp", "--models", help="Comma list of lmpromp and promp."),
-    engines: str = typer.Option("auto", help="Comma list of engines ('svi' = all SVI guides; engines not offered for a model are skipped), or auto: lmpromp cavi,nuts,svi_meanfield; promp nuts,svi_autonormal."),
+    engines: str = typer.Option("auto", help="Comma list of engines ('svi' = all SVI guides; engines not offered for a model are skipped), or auto: lmpromp cavi,cavi_lr,nuts,svi_meanfield; promp nuts,svi_autonormal."),
     replicates: int = typer.Option(100, min=1, help="Simulated datasets per engine (NUTS, SVI)."),
-    cavi_replicates: Optional[int] = typer.Option(None, "--cavi-replicates", min=1, help="Simulated datasets for CAVI (default: --replicates)."),
+    cavi_replicates: Optional[int] = typer.Option(None, "--cavi-replicates", min=1, help="Simulated datasets for CAVI and CAVI-LR (default: --replicates)."),
     svi_replicates: Optional[int] = typer.Option(None, "--svi-replicates", min=1, help="Simulated datasets per SVI engine (default: --replicates)."),
-    cavi_batch: int = typer.Option(50, "--cavi-batch", min=1, help="CAVI replicates per vmapped task."),
+    cavi_batch: int = typer.Option(50, "--cavi-batch", min=1, help="CAVI (and CAVI-LR) replicates per vmapped task."),
     draws: int = typer.Option(99, min=1, help="Posterior draws per replicate (ranks lie in 0..draws)."),
     demos: int = typer.Option(8, min=1, help="Demonstrations per dataset (L)."),
     dofs: int = typer.Option(1, min=1, help="Degrees of freedom (D)."),
@@ -116,8 +116,9 @@ def sbc_command(
         if not chosen:
             raise LmprompError(f"none of the engines {engines!r} is offered for model {model!r} "
                                f"(offered: {', '.join(MODEL_ENGINES[model])})")
-        if "cavi" in chosen:
-            tasks.update(sbc_tasks(problem, ["cavi"], cavi_replicates or replicates, seed=seed,
+        batched = [e for e in ("cavi", "cavi_lr") if e in chosen]
+        if batched:
+            tasks.update(sbc_tasks(problem, batched, cavi_replicates or replicates, seed=seed,
                                    cavi_batch=cavi_batch))
         if "nuts" in chosen:
             tasks.update(sbc_tasks(problem, ["nuts"], replicates, seed=seed, options=options))

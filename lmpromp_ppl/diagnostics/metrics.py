@@ -443,6 +443,9 @@ def engine_khat(result, data, key, num_draws: int = 1000, program=None) -> dict:
     * ``cavi``: the full declared model (:func:`lmpromp_ppl.models.lmpromp.lmpromp_model`
       through ``numpyro.infer.util.log_density``) and the closed-form log density of
       the CAVI factors (the result's ``log_density``);
+    * ``cavi_lr``: the linear-response Gaussian of the global quantities on the model with
+      ``w`` and ``h`` integrated out (their exact conditionals cancel from the ratio;
+      :mod:`lmpromp_ppl.inference.cavi.importance`);
     * ``svi_*``: the guide's own model (collapsed over ``w`` for the automatic
       guides, where ``w`` given theta is exact and cancels from the ratio),
       through numpyro's importance traces (compiled once, vmapped over the
@@ -482,6 +485,11 @@ def engine_khat(result, data, key, num_draws: int = 1000, program=None) -> dict:
         else:  # on the fastest equal form of the data (shared-design statistics where possible)
             target = (lmpromp_model, (model_inputs("lmpromp", "none", data), result.hyper))
         log_ratio = model_log_joint(*target, draws) - np.asarray(result.log_density(draws))
+    elif engine == "cavi_lr":
+        if not hasattr(result.state, "log_ratios"):
+            out["note"] = "the cavi_lr result does not carry its linear response"
+            return out
+        log_ratio = result.state.log_ratios(key_q, num_draws)
     elif engine.startswith("svi_"):
         if not hasattr(result.state, "context"):
             out["note"] = "the SVI result does not carry its guide parameters"

@@ -27,14 +27,16 @@ __all__ = [
 ]
 
 #: Every engine, in the order of docs/cli.md.
-ENGINES = ("cavi", "svi_meanfield", "svi_autonormal", "svi_lowrank", "nuts")
+ENGINES = ("cavi", "cavi_lr", "svi_meanfield", "svi_autonormal", "svi_lowrank", "nuts")
 #: The SVI engines (``svi_<guide>``).
 SVI_ENGINES = ("svi_meanfield", "svi_autonormal", "svi_lowrank")
 
 #: The models each engine runs.  CAVI's updates are derived for the LMProMP and its
-#: mixture; the meanfield guide has the factors of the single-type CAVI family.
+#: mixture; its joint local family and linear response (``cavi_lr``) for the single type;
+#: the meanfield guide has the factors of the single-type CAVI family.
 ENGINE_MODELS = {
     "cavi": ("lmpromp", "mixture"),
+    "cavi_lr": ("lmpromp",),
     "svi_meanfield": ("lmpromp",),
     "svi_autonormal": MODEL_NAMES,
     "svi_lowrank": MODEL_NAMES,
@@ -44,6 +46,7 @@ ENGINE_MODELS = {
 #: Options each engine accepts through ``fit(..., **options)``.
 ENGINE_OPTIONS = {
     "cavi": frozenset({"tol", "max_iter", "num_restarts", "family", "search", "max_moves", "accelerate"}),
+    "cavi_lr": frozenset({"tol", "max_iter", "num_restarts", "family", "accelerate", "resample"}),
     "nuts": frozenset({"num_chains", "num_warmup", "num_samples", "target_accept", "max_tree_depth",
                        "collapsed", "dense_mass", "init"}),
     "svi": frozenset({"num_steps", "learning_rate", "learning_rate_decay", "num_particles", "rank", "stop_tol",
@@ -61,7 +64,7 @@ def check_engine(engine: str) -> str:
     return engine
 
 
-_DISPLAY = {"cavi": "CAVI", "nuts": "NUTS"}
+_DISPLAY = {"cavi": "CAVI", "cavi_lr": "CAVI with linear response", "nuts": "NUTS"}
 
 
 def check_pair(model: str, engine: str) -> None:
@@ -91,7 +94,7 @@ def guide_of(engine: str) -> str:
 def check_fit(model: str, engine: str, options: dict) -> None:
     """Refuse, before any work, an invalid pair or an option the engine (or model) does not take."""
     check_pair(model, engine)
-    allowed = ENGINE_OPTIONS[engine.split("_")[0]]
+    allowed = ENGINE_OPTIONS[engine if engine in ENGINE_OPTIONS else engine.split("_")[0]]
     unknown = sorted(set(options) - allowed)
     if unknown:
         raise LmprompError(f"engine {engine} does not take option(s) {', '.join(unknown)}; "
@@ -99,6 +102,11 @@ def check_fit(model: str, engine: str, options: dict) -> None:
     mixture_only = sorted(set(options) & MIXTURE_OPTIONS)
     if model != "mixture" and mixture_only:
         raise LmprompError(f"option(s) {', '.join(mixture_only)} apply to the mixture model only")
+    if "resample" in options:
+        from lmpromp_ppl.inference.cavi import RESAMPLE_CHOICES
+
+        if options["resample"] not in RESAMPLE_CHOICES:
+            raise LmprompError(f"unknown resample {options['resample']!r}; choose from {list(RESAMPLE_CHOICES)}")
     if "search" in options:
         from lmpromp_ppl.inference.cavi import SEARCHES
 
@@ -110,6 +118,7 @@ def run_engine(engine: str, model: str, data, hyper, key, *, progress=False, **o
     """Run ``engine`` on ``model`` and prepared model inputs; the engine's own result.
 
     ``cavi`` -> :class:`~lmpromp_ppl.inference.cavi.CaviFit` (:func:`lmpromp_ppl.inference.cavi.fit`),
+    ``cavi_lr`` -> :class:`~lmpromp_ppl.inference.cavi.CaviLrFit` (:func:`lmpromp_ppl.inference.cavi.fit_lr`),
     ``nuts`` -> :class:`~lmpromp_ppl.inference.nuts.NutsResult`,
     ``svi_<guide>`` -> :class:`~lmpromp_ppl.inference.svi.SviResult`.  The pair is
     checked first (:func:`check_pair`); ``options`` go to the engine.
@@ -119,6 +128,10 @@ def run_engine(engine: str, model: str, data, hyper, key, *, progress=False, **o
         from lmpromp_ppl.inference import cavi
 
         return cavi.fit(data, hyper, key, mixture=model == "mixture", progress=progress, **options)
+    if engine == "cavi_lr":
+        from lmpromp_ppl.inference import cavi
+
+        return cavi.fit_lr(data, hyper, key, progress=progress, **options)
     if engine == "nuts":
         from lmpromp_ppl.inference.nuts import fit_nuts
 

@@ -38,7 +38,7 @@ import numpy as np
 from lmpromp_ppl.errors import ConvergenceWarning, LmprompError
 from lmpromp_ppl.inference.registry import ENGINES, SVI_ENGINES, check_pair, engines_for
 
-__all__ = ["QUANTITIES", "EXTRA_QUANTITIES", "expand_engines", "compute_metrics", "compare"]
+__all__ = ["QUANTITIES", "EXTRA_QUANTITIES", "DEFAULT_ENGINES", "expand_engines", "compute_metrics", "compare"]
 
 #: Quantities of ``vs_nuts`` in ``metrics.json`` (docs/cli.md).
 QUANTITIES = ("b", "alpha", "lam", "gram_eig", "pred_mean", "w")
@@ -52,11 +52,18 @@ RELIABILITY_QUANTITIES = ("b", "alpha", "lam", "gram_eig", "pred_mean", "pred_sd
 REPORT_DRAW_BYTES = 300_000
 
 
+#: The default engine list of ``compare``: every engine offered for the model.
+DEFAULT_ENGINES = "auto"
+
+
 def expand_engines(engines: str | Sequence[str], model: str) -> list[str]:
-    """Engine names from ``"cavi,svi,nuts"``: ``svi`` means every SVI guide offered for ``model``.
+    """Engine names from ``"cavi,svi,nuts"``: ``svi`` means every SVI guide offered for ``model``;
+    ``auto`` (:data:`DEFAULT_ENGINES`) every engine offered for ``model`` (``cavi_lr`` for the LMProMP).
 
     NUTS is required (it is the reference) and put first; duplicates are dropped.
     """
+    if isinstance(engines, str) and engines.strip() == "auto":
+        engines = list(engines_for(model))
     items = [e.strip() for e in (engines.split(",") if isinstance(engines, str) else engines)]
     items = [e for e in items if e]
     out: list[str] = []
@@ -207,7 +214,7 @@ def _options(engine: str, num_chains, num_warmup, num_samples, svi_steps) -> dic
 def compare(
     dataset,
     model: str = "lmpromp",
-    engines: str | Sequence[str] = "cavi,svi,nuts",
+    engines: str | Sequence[str] = DEFAULT_ENGINES,
     *,
     out_dir: str | Path,
     latent_dim: int | None = None,
@@ -230,7 +237,8 @@ def compare(
     dataset : a dataset string (``"lasa:GShape?every=20"``, ``"synthetic:latent?L=8"``, a file) or
         :class:`~lmpromp_ppl.data.Demonstrations`
     model : ``"lmpromp"``, ``"mixture"`` or ``"promp"``
-    engines : comma-separated names or a list; ``svi`` means every SVI guide; must include ``nuts``
+    engines : comma-separated names or a list; ``svi`` means every SVI guide; must include ``nuts``;
+        ``"auto"`` (default) is every engine offered for ``model``
     out_dir : output directory (refused when it exists and is not empty, unless ``force``)
     latent_dim, num_components : override the preset's V and K
     num_basis : basis functions per DoF (J), or ``"auto"``: chosen once by the

@@ -11,7 +11,10 @@ family for M and a learned noise precision are options of the same state
 * :func:`fit` -- validated options, restarts and the split-and-merge search (:mod:`.fit`, :mod:`.search`);
 * :func:`sample_q`, :func:`log_q`, :func:`point_estimate` -- the fitted family (:mod:`.posterior`);
 * :func:`elbo` -- the closed-form bound (:mod:`.bound`);
-* :func:`fit_cavi_batched` -- many datasets of one shape in one vmapped loop (:mod:`.batch`).
+* :func:`fit_cavi_batched` -- many datasets of one shape in one vmapped loop (:mod:`.batch`);
+* :func:`fit_lr` -- the engine ``cavi_lr``: the joint local family q(w_i, h_i) (:mod:`.state`),
+  linear-response covariances of the global quantities (:mod:`.linear_response`) and their
+  importance ratios on the collapsed model (:mod:`.importance`).
 
 Every update is derived in ``docs/derivation.md`` and checked in
 ``tests/test_cavi.py`` and ``tests/test_cavi_mixture.py`` by autodiff
@@ -19,7 +22,13 @@ stationarity of :func:`elbo`, and the bound against a Monte Carlo ELBO of the
 NumPyro declaration.
 """
 
-from lmpromp_ppl.inference.cavi.batch import BatchedCaviFit, fit_cavi_batched, replicate_state, sample_q_batched
+from lmpromp_ppl.inference.cavi.batch import (
+    BatchedCaviFit,
+    fit_cavi_batched,
+    linear_response_batched,
+    replicate_state,
+    sample_q_batched,
+)
 from lmpromp_ppl.inference.cavi.bound import elbo
 from lmpromp_ppl.inference.cavi.data import (
     CaviData,
@@ -29,7 +38,8 @@ from lmpromp_ppl.inference.cavi.data import (
     SharedGram,
     sufficient_statistics,
 )
-from lmpromp_ppl.inference.cavi.fit import fit
+from lmpromp_ppl.inference.cavi.fit import RESAMPLE_CHOICES, CaviLrFit, fit, fit_lr
+from lmpromp_ppl.inference.cavi.linear_response import LinearResponse, linear_response, sample_lr
 from lmpromp_ppl.inference.cavi.init import init_mixture_state, init_state, init_state_jax, ridge_weights
 from lmpromp_ppl.inference.cavi.loop import Resume, RunResult, compiled_iterate, fresh, iterate, run, step, sweep
 from lmpromp_ppl.inference.cavi.posterior import (
@@ -85,7 +95,8 @@ __all__ = [
     "elbo", "sweep", "step", "Resume", "fresh", "iterate", "compiled_iterate", "run", "RunResult",
     "ridge_weights", "init_state", "init_state_jax", "init_mixture_state",
     "fit", "CaviFit", "SEARCHES",
+    "fit_lr", "CaviLrFit", "RESAMPLE_CHOICES", "LinearResponse", "linear_response", "sample_lr",
     "sample_q", "log_q", "point_estimate", "w_covariance", "responsibilities", "active_components",
     "active_latent_dims",
-    "fit_cavi_batched", "BatchedCaviFit", "replicate_state", "sample_q_batched",
+    "fit_cavi_batched", "BatchedCaviFit", "replicate_state", "sample_q_batched", "linear_response_batched",
 ]

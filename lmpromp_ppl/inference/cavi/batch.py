@@ -45,11 +45,19 @@ from lmpromp_ppl.inference.cavi.init import init_state, init_state_jax
 from lmpromp_ppl.inference.cavi.loop import fresh, iterate
 from lmpromp_ppl.inference.cavi.posterior import sample_q
 from lmpromp_ppl.inference.cavi.restarts import check_options
-from lmpromp_ppl.inference.cavi.state import CaviHyper, CaviState, hyper_arrays
+from lmpromp_ppl.inference.cavi.linear_response import LinearResponse, response
+from lmpromp_ppl.inference.cavi.state import (
+    CaviHyper,
+    CaviState,
+    check_family,
+    check_local,
+    hyper_arrays,
+    with_joint_locals,
+)
 from lmpromp_ppl.inference.compiled import compiled
 from lmpromp_ppl.models.hyper import Hyperparameters
 
-__all__ = ["BatchedCaviFit", "fit_cavi_batched", "replicate_state", "sample_q_batched"]
+__all__ = ["BatchedCaviFit", "fit_cavi_batched", "replicate_state", "sample_q_batched", "linear_response_batched"]
 
 
 class BatchedCaviFit(NamedTuple):
@@ -66,6 +74,7 @@ class BatchedCaviFit(NamedTuple):
         (it includes the initialisation for stacked ``CaviData``, which is
         initialised inside the program)
     compile_seconds : compilation time (0 when already compiled in this process)
+    data : the stacked statistics the replicates were fitted to
     """
 
     state: CaviState
@@ -74,6 +83,7 @@ class BatchedCaviFit(NamedTuple):
     converged: np.ndarray
     seconds: float
     compile_seconds: float
+    data: CaviData | None = None
 
 
 def _iterate_one(state: CaviState, data: CaviData, hyper: CaviHyper, tol: Array, max_iter: Array):
@@ -103,7 +113,8 @@ def _stack(trees: Sequence) -> object:
     return jax.tree.map(lambda *leaves: jnp.stack(leaves), *trees)
 
 
-def _prepare_datasets(datasets: Sequence[ModelData], hyper: Hyperparameters):
+def _prepare_datasets(datasets: Sequence[ModelData], hyper: Hyperparameters, family: str = "columnwise",
+                      local: str = "meanfield"):
     """(initial states, data), both stacked over the replicates, from R ModelData (NumPy initialisation)."""
     datasets = list(datasets)
     if not datasets:
@@ -118,7 +129,8 @@ def _prepare_datasets(datasets: Sequence[ModelData], hyper: Hyperparameters):
     if len(paths) != 1:
         raise DataError("all datasets must share their design matrix the same way (fast path or not)")
     hyper.validate_for(datasets[0].num_weights, datasets[0].num_demos)
-    return _stack([init_state(p, hyper) for p in prepared]), _stack(prepared)
+    lift = with_joint_locals if local == "joint" else (lambda state: state)  # noqa: E731
+    return _stack([lift(init_state(p, hyper, family=family)) for p in prepared]), _stack(prepared)
 
 
 def _check_stacked(data: CaviData, hyper: Hyperparameters) -> None:
@@ -140,6 +152,8 @@ def fit_cavi_batched(
     *,
     tol: float = 1e-8,
     max_iter: int = 2000,
+    family: str = "columnwise",
+    local: str = "meanfield",
 ) -> BatchedCaviFit:
     """Fit the single-type LMProMP by CAVI (eq. 4.3) to R datasets of one shape at once.
 
@@ -158,6 +172,8 @@ def fit_cavi_batched(
         column-wise family)
     tol : relative ELBO tolerance of each replicate
     max_iter : maximum sweeps per replicate
+    family, local : the families of q(M) and of the local factors (:func:`~lmpromp_ppl.inference.cavi.fit`);
+        other than the defaults only for a sequence of ModelData
 
     Returns
     -------
@@ -168,18 +184,42 @@ def fit_cavi_batched(
     if hyper.num_components != 1 or hyper.learn_beta:
         raise LmprompError("batched CAVI fits the single-type model with a fixed beta (num_components=1)")
     check_options(tol, max_iter, 1)
+    check_family(family)
+    check_local(local)
     if isinstance(datasets, CaviData):
+        if (family, local) != ("columnwise", "meanfield"):
+            raise LmprompError("stacked CaviData start in the thesis's family; pass ModelData for another family")
         _check_stacked(datasets, hyper)
         states, data, latent_dim = None, datasets, hyper.latent_dim
     else:
-        (states, data), latent_dim = _prepare_datasets(datasets, hyper), None
+        (states, data), latent_dim = _prepare_datasets(datasets, hyper, family, local), None
     args = (states, data, hyper_arrays(hyper, 0.0), jnp.asarray(tol, jnp.float64), jnp.asarray(max_iter, jnp.int32))
     executable, compile_seconds = compiled(_batched_program, args, latent_dim=latent_dim)
     start = time.perf_counter()
     state, iterations, elbo, converged = jax.block_until_ready(executable(*args))
     seconds = time.perf_counter() - start
     return BatchedCaviFit(state, np.asarray(elbo), np.asarray(iterations), np.asarray(converged),
-                          seconds, compile_seconds)
+                          seconds, compile_seconds, data)
+
+
+@jax.jit
+def _responses(states: CaviState, data: CaviData, hyper: CaviHyper):
+    return jax.vmap(lambda s, d: response(s, d, hyper, False))(states, data)
+
+
+def linear_response_batched(fit: BatchedCaviFit, hyper: Hyperparameters) -> tuple[LinearResponse, float, float]:
+    """The linear response (:mod:`.linear_response`) of every replicate of a joint-family batched fit, vmapped.
+
+    Returns the :class:`~.linear_response.LinearResponse` with a leading replicate axis,
+    the seconds of the compiled program and its compilation.
+    """
+    if fit.state.wh_cov is None or fit.data is None:
+        raise LmprompError("linear response needs a batched fit of ModelData in the joint local family")
+    args = (fit.state, fit.data, hyper_arrays(hyper, 0.0))
+    executable, compile_seconds = compiled(_responses, args)
+    start = time.perf_counter()
+    lr = jax.block_until_ready(executable(*args))
+    return lr, time.perf_counter() - start, compile_seconds
 
 
 def replicate_state(fit: BatchedCaviFit, index: int) -> CaviState:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import jax
 import numpy as np
@@ -24,7 +25,7 @@ from lmpromp_ppl.inference.cavi.state import (
 )
 from lmpromp_ppl.models.hyper import Hyperparameters
 
-__all__ = ["fit"]
+__all__ = ["fit", "fit_lr", "CaviLrFit", "RESAMPLE_CHOICES"]
 
 
 def fit(
@@ -142,3 +143,115 @@ def fit(
         seed = int(jax.random.randint(jax.random.fold_in(key, 1), (), 0, np.iinfo(np.int32).max))
         return fit_with_search(starts, cavi_data, hyper_arr, tol=tol, max_iter=max_iter, max_moves=max_moves,
                                seed=seed, callback=callback)
+
+
+#: Values of ``fit_lr(resample=...)``: resample by importance weights when k-hat is small enough, or never.
+RESAMPLE_CHOICES = ("auto", "never")
+
+
+class CaviLrFit(NamedTuple):
+    """Result of :func:`fit_lr`: the joint-family CAVI fit, its linear response and its importance diagnostics.
+
+    Attributes
+    ----------
+    fit : the :class:`CaviFit` of the joint local family
+    lr : the :class:`~.linear_response.LinearResponse` of the global quantities
+    lr_seconds : wall time of the linear response, excluding compilation
+    lr_compile_seconds : its compilation (0 when already compiled in this process)
+    psis_khat : Pareto k-hat of the importance ratios of the linear-response Gaussian on the
+        collapsed model (:mod:`.importance`), or None (``psis_note`` says why)
+    psis_note : why ``psis_khat`` is None, or ""
+    resampled : whether :meth:`sample` resamples by the importance weights (k-hat below
+        :data:`~lmpromp_ppl.inference.psis.KHAT_RESAMPLE` and ``resample="auto"``)
+    inputs : the collapsed model's inputs (for the importance ratios)
+    data : the model inputs of the fit
+    hyper : the fit's hyperparameters
+    """
+
+    fit: CaviFit
+    lr: object
+    lr_seconds: float
+    lr_compile_seconds: float
+    psis_khat: float | None
+    psis_note: str
+    resampled: bool
+    inputs: object
+    data: object
+    hyper: Hyperparameters
+
+    @property
+    def state(self):
+        """The joint-family CAVI state."""
+        return self.fit.state
+
+    def sample(self, key: Array, num_draws: int) -> dict:
+        """Draws of every site: importance-resampled when :attr:`resampled`, else the linear-response draws."""
+        from lmpromp_ppl.inference.cavi.importance import importance_draws
+        from lmpromp_ppl.inference.cavi.linear_response import sample_lr
+
+        learned = bool(self.fit.state.beta_learned)
+        if self.resampled:
+            return importance_draws(key, self.lr, self.inputs, self.hyper, num_draws, learned, self.data)[0]
+        return sample_lr(key, self.lr, self.fit.state, num_draws, learned)
+
+    def log_density(self, draws: dict) -> Array:
+        """log density of the linear-response draws (global Gaussian and joint local q)."""
+        from lmpromp_ppl.inference.cavi.linear_response import log_q_lr
+
+        return log_q_lr(self.lr, self.fit.state, draws)
+
+    def log_ratios(self, key: Array, num_draws: int) -> np.ndarray:
+        """Importance log ratios of the global quantities on the collapsed model (:mod:`.importance`)."""
+        from lmpromp_ppl.inference.cavi.importance import global_log_ratios
+
+        learned = bool(self.fit.state.beta_learned)
+        return global_log_ratios(key, self.lr, self.inputs, self.hyper, num_draws, learned)[1]
+
+
+def fit_lr(
+    data: ModelData,
+    hyper: Hyperparameters,
+    key: Array,
+    *,
+    tol: float = 1e-8,
+    max_iter: int = 2000,
+    num_restarts: int = 1,
+    progress=False,
+    shared_psi: bool | None = None,
+    family: str = "rowwise",
+    accelerate: str = "scale",
+    resample: str = "auto",
+) -> CaviLrFit:
+    """Fit the single-type LMProMP by CAVI in the joint local family, then correct the global covariances.
+
+    The engine ``cavi_lr``: :func:`fit` with ``local="joint"`` (one joint Gaussian
+    q(w_i, h_i) per demonstration; ``family`` of q(M), row-wise by default), then the
+    linear-response covariance of :math:`(b, M, \\log\\alpha, \\log\\lambda, \\log\\beta)`
+    (:mod:`.linear_response`), then the Pareto k-hat of that Gaussian as an importance
+    proposal on the model with w and h integrated out (:mod:`.importance`, ratios of
+    :data:`~.importance.POOL` draws of a key split from ``key``).  With ``resample="auto"``
+    draws are importance-resampled when k-hat < :data:`~lmpromp_ppl.inference.psis.KHAT_RESAMPLE`.
+    """
+    import time
+
+    from lmpromp_ppl.inference.cavi.importance import POOL, global_log_ratios
+    from lmpromp_ppl.inference.cavi.linear_response import linear_response
+    from lmpromp_ppl.inference.psis import KHAT_RESAMPLE, psis
+    from lmpromp_ppl.models.registry import model_inputs
+
+    if resample not in RESAMPLE_CHOICES:
+        raise LmprompError(f"unknown resample {resample!r}; choose from {list(RESAMPLE_CHOICES)}")
+    key_fit, key_ratio = jax.random.split(key)
+    result = fit(data, hyper, key_fit, tol=tol, max_iter=max_iter, num_restarts=num_restarts, progress=progress,
+                 shared_psi=shared_psi, family=family, accelerate=accelerate, local="joint")
+    cavi_data = sufficient_statistics(data, shared_psi)
+    hyper_arr = hyper_arrays(hyper, 0.0, accelerate)
+    start = time.perf_counter()
+    lr, compile_seconds = linear_response(result.state, cavi_data, hyper_arr, timed=True)
+    lr_seconds = time.perf_counter() - start - compile_seconds
+    inputs = model_inputs("lmpromp", "wh", data)
+    learned = bool(result.state.beta_learned)
+    _, ratios = global_log_ratios(key_ratio, lr, inputs, hyper, POOL, learned)
+    _, khat, note = psis(ratios)
+    resampled = resample == "auto" and khat is not None and khat < KHAT_RESAMPLE
+    return CaviLrFit(result, lr, lr_seconds, compile_seconds, khat, note, bool(resampled), inputs, data, hyper)

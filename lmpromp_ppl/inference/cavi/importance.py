@@ -43,19 +43,23 @@ __all__ = ["global_draws", "global_log_ratios", "importance_draws", "POOL"]
 POOL = 4000
 
 
+def _gaussian_draws(key: Array, lr: LinearResponse, num_draws: int) -> Array:
+    z = jax.random.normal(key, (num_draws, lr.mean.shape[0]))
+    return lr.mean + z @ jnp.linalg.cholesky(lr.cov + 1e-12 * jnp.max(jnp.diagonal(lr.cov)) * jnp.eye(lr.cov.shape[0])).T
+
+
 def global_draws(key: Array, lr: LinearResponse, num_draws: int, learned: bool, d: int, V: int) -> dict:
     """``num_draws`` draws of the global sites from the linear-response Gaussian."""
-    z = jax.random.normal(key, (num_draws, lr.mean.shape[0]))
-    g = lr.mean + z @ jnp.linalg.cholesky(lr.cov + 1e-12 * jnp.max(jnp.diagonal(lr.cov)) * jnp.eye(lr.cov.shape[0])).T
-    return split_quantities(g, lr.basis, d, V, learned)
+    return split_quantities(_gaussian_draws(key, lr, num_draws), lr.basis, d, V, learned)
 
 
 @partial(jax.jit, static_argnames=("num_draws", "learned", "d", "V", "hyper"))
 def _ratios(key, lr, inputs, hyper: Hyperparameters, num_draws: int, learned: bool, d: int, V: int):
-    draws = global_draws(key, lr, num_draws, learned, d, V)
+    g = _gaussian_draws(key, lr, num_draws)
+    draws = split_quantities(g, lr.basis, d, V, learned)
     log_p = jax.vmap(lambda p: log_density(lmpromp_collapsed_model, (inputs, hyper), {"collapse_h": True}, p)[0])(
         draws)
-    return draws, log_p - log_q_globals(lr, draws)
+    return g, draws, log_p - log_q_globals(lr, draws)
 
 
 def global_log_ratios(key: Array, lr: LinearResponse, inputs, hyper: Hyperparameters, num_draws: int,
@@ -67,7 +71,7 @@ def global_log_ratios(key: Array, lr: LinearResponse, inputs, hyper: Hyperparame
     """
     d = lr.basis.shape[0]
     V = (lr.mean.shape[0] - d - 1 - int(learned)) // (d + 1)
-    draws, ratios = _ratios(key, lr, inputs, hyper, int(num_draws), bool(learned), d, V)
+    _, draws, ratios = _ratios(key, lr, inputs, hyper, int(num_draws), bool(learned), d, V)
     return draws, np.asarray(ratios)
 
 

@@ -41,7 +41,6 @@ fixed point of the CAVI updates.
 
 from __future__ import annotations
 
-from functools import partial
 from typing import NamedTuple
 
 import jax
@@ -56,6 +55,7 @@ from lmpromp_ppl.inference.cavi.data import CaviData, SharedGram
 from lmpromp_ppl.inference.cavi.eigenbasis import rotates, to_eigenbasis
 from lmpromp_ppl.inference.cavi.state import CaviHyper, CaviState
 from lmpromp_ppl.inference.cavi.updates import update_wh
+from lmpromp_ppl.inference.compiled import compiled
 
 __all__ = [
     "LinearResponse",
@@ -67,6 +67,8 @@ __all__ = [
     "log_q_globals",
     "split_quantities",
     "CG_TOL",
+    "METHODS",
+    "response",
 ]
 
 #: Relative residual at which each conjugate-gradient solve stops.
@@ -162,8 +164,54 @@ def _profiled_bound(eta: Array, template: CaviState, data: CaviData, hyper: Cavi
     return elbo(state, data, hyper)
 
 
-@partial(jax.jit, static_argnames=("learned", "maxiter"))
-def _solve(state: CaviState, data: CaviData, hyper: CaviHyper, learned: bool, maxiter: int):
+def _preconditioner(state: CaviState, learned: bool, hvp) -> tuple:
+    """A block-diagonal approximation of H, inverted: the conjugate-gradient preconditioner.
+
+    The Hessian of the bound in the means of q(b) and q(M) is the precision of those
+    factors (:math:`\\sigma_b^{-1}I`, :math:`\\Sigma_M^{-1}` per row; column variances for
+    the column-wise family) plus the couplings that the linear response adds; the remaining
+    few parameters (variances, Gamma shapes and rates) get their exact dense block of H
+    from one Hessian-vector product per parameter.
+    """
+    d, V = state.M_mean.shape[1:]
+    size = _pack(state, learned).shape[0]
+    head = d + 1 + d * V  # b, log sigma_b, M
+    rest = jnp.concatenate([jnp.asarray([d]), jnp.arange(head, size)])  # log sigma_b and everything after M
+    probes = jnp.zeros((rest.shape[0], size)).at[jnp.arange(rest.shape[0]), rest].set(1.0)
+    block = jax.vmap(hvp)(probes)[:, rest]
+    block_inv = jnp.linalg.inv(0.5 * (block + block.T))
+    M_cov = state.M_var[0] if state.M_var.ndim == 3 else jnp.diag(state.M_var[0])
+    b_var = state.b_var[0]
+
+    def apply(r):
+        out = jnp.zeros_like(r)
+        out = out.at[:d].set(b_var * r[:d])
+        out = out.at[d + 1 : head].set((r[d + 1 : head].reshape(d, V) @ M_cov).reshape(-1))
+        return out.at[rest].set(block_inv @ r[rest])
+
+    return apply
+
+
+def response(state: CaviState, data: CaviData, hyper: CaviHyper, learned: bool, method: str = "dense",
+             maxiter: int = 0) -> LinearResponse:
+    """The traceable body of :func:`linear_response` (``vmap``-able over replicates, as SBC does).
+
+    On a shared design with the state's covariances in its eigenbasis the solve runs in
+    the rotated coordinates (:mod:`.eigenbasis`) and the basis is returned with the result.
+    """
+    d = state.M_mean.shape[1]
+    basis = jnp.eye(d)
+    if rotates(state, data):
+        basis = data.gram.basis
+        state, data = to_eigenbasis(state, data)
+    elif isinstance(data.gram, SharedGram):
+        raise LmprompError("the state's weight covariances are not stored in the data's eigenbasis")
+    maxiter = int(maxiter) or 4 * int(_pack(state, learned).shape[0])
+    means, cov, residual = _solve(state, data, hyper, learned, method, maxiter)
+    return LinearResponse(means, cov, basis, residual)
+
+
+def _solve(state: CaviState, data: CaviData, hyper: CaviHyper, learned: bool, method: str, maxiter: int):
     eta = _pack(state, learned)
     negative = lambda e: -_profiled_bound(e, state, data, hyper, learned)  # noqa: E731
     gradient = jax.grad(negative)
@@ -173,34 +221,56 @@ def _solve(state: CaviState, data: CaviData, hyper: CaviHyper, learned: bool, ma
 
     means, vjp = jax.vjp(lambda e: global_means(_unpack(e, state, learned), learned), eta)
     rhs = jax.vmap(lambda e: vjp(e)[0])(jnp.eye(means.shape[0]))  # rows of J, i.e. columns of J^T
+    if method == "dense":
+        # H column by column: one Hessian-vector product per global parameter, batched
+        hessian = jax.vmap(hvp)(jnp.eye(eta.shape[0]))
+        hessian = 0.5 * (hessian + hessian.T)
+        solutions = jax.scipy.linalg.cho_solve((jnp.linalg.cholesky(hessian), True), rhs.T).T
+        residuals = jnp.linalg.norm(solutions @ hessian - rhs, axis=1) / jnp.linalg.norm(rhs, axis=1)
+    else:
+        precondition = _preconditioner(state, learned, hvp)
 
-    def one(b):
-        x, _ = jax.scipy.sparse.linalg.cg(hvp, b, tol=CG_TOL, maxiter=maxiter)
-        return x, jnp.linalg.norm(hvp(x) - b) / jnp.maximum(jnp.linalg.norm(b), 1e-300)
+        def one(b):
+            x, _ = jax.scipy.sparse.linalg.cg(hvp, b, tol=CG_TOL, maxiter=maxiter, M=precondition)
+            return x, jnp.linalg.norm(hvp(x) - b) / jnp.maximum(jnp.linalg.norm(b), 1e-300)
 
-    solutions, residuals = jax.vmap(one)(rhs)  # (n, dim eta): H^-1 J^T, row by row
+        solutions, residuals = jax.vmap(one)(rhs)  # (n, dim eta): H^-1 J^T, row by row
     cov = rhs @ solutions.T
     return means, 0.5 * (cov + cov.T), jnp.max(residuals)
 
 
-def linear_response(state: CaviState, data: CaviData, hyper: CaviHyper, *, maxiter: int | None = None) -> LinearResponse:
+#: Ways of solving :math:`H X = J^T` (:func:`linear_response`).
+METHODS = ("dense", "cg")
+
+
+def linear_response(state: CaviState, data: CaviData, hyper: CaviHyper, *, method: str = "dense",
+                    maxiter: int | None = None, timed: bool = False):
     """:math:`E_q[g]` and :math:`\\Sigma_{LR}` at a converged state of the joint local family (module docstring).
 
-    ``data`` and ``hyper`` are those of the fit.  ``maxiter`` bounds each conjugate-gradient
-    solve (default: the number of global parameters, where exact arithmetic terminates).
+    ``data`` and ``hyper`` are those of the fit.  ``method`` solves :math:`HX = J^T`:
+
+    * ``"dense"`` (default): H from one Hessian-vector product per global parameter
+      (batched), then a Cholesky solve.  H is :math:`p \\times p` with
+      :math:`p = d(V + 1) + O(V^2)` global parameters, the size of the covariance it gives;
+      it costs p products.
+    * ``"cg"``: one preconditioned conjugate-gradient solve per quantity
+      (:func:`_preconditioner`), k products each: cheaper only when far fewer quantities
+      than parameters are wanted (here there are about as many, so k n > p).
+
+    ``maxiter`` bounds each conjugate-gradient solve (default: four times the number of
+    global parameters).  ``timed=True`` returns ``(LinearResponse, compile seconds)``.
     """
     _check(state)
+    if method not in METHODS:
+        raise LmprompError(f"unknown linear-response method {method!r}; choose from {list(METHODS)}")
     learned = bool(state.beta_learned)
-    d = state.M_mean.shape[1]
-    basis = jnp.eye(d)
-    if rotates(state, data):
-        basis = data.gram.basis
-        state, data = to_eigenbasis(state, data)
-    elif isinstance(data.gram, SharedGram):
-        raise LmprompError("the state's weight covariances are not stored in the data's eigenbasis")
-    size = int(_pack(state, learned).shape[0])
-    means, cov, residual = _solve(state, data, hyper, learned, int(maxiter or 4 * size))
-    return LinearResponse(means, cov, basis, residual)
+    executable, seconds = compiled(_response_jit, (state, data, hyper), learned=learned, method=method,
+                                   maxiter=int(maxiter or 0))
+    lr = jax.block_until_ready(executable(state, data, hyper))
+    return (lr, seconds) if timed else lr
+
+
+_response_jit = jax.jit(response, static_argnames=("learned", "method", "maxiter"))
 
 
 def sample_lr(key: Array, lr: LinearResponse, state: CaviState, num_draws: int, learned_beta: bool) -> dict:
