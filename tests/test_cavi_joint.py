@@ -18,14 +18,14 @@ import numpy as np
 import numpyro.distributions as dist
 import pytest
 from numpyro.infer.util import log_density
-from test_cavi import (
+from test_cavi import (  # noqa: F401  (small is a fixture)
     HYPER,
     HYPER_ARR,
-    _latent_data,
+    _perturb,
     _real,
     _stationary,
     _sweep_elbos,
-    _with_missing,
+    small,
 )
 
 from lmpromp_ppl.errors import LmprompError
@@ -35,12 +35,6 @@ from lmpromp_ppl.models.hyper import Hyperparameters
 from lmpromp_ppl.models.lmpromp import lmpromp_model
 
 V = HYPER.latent_dim
-
-
-@pytest.fixture(scope="module")
-def small():
-    data, truth = _latent_data(seed=1, L=8, T=12, width=0.5)
-    return {"shared": data, "missing": _with_missing(data, seed=2, fraction=0.2), "truth": truth}
 
 
 def _joint_start(data, hyper, seed, family="columnwise"):
@@ -104,24 +98,11 @@ def midway(small):
     state = _joint_start(data, hyper, 4, family="rowwise")
     for _ in range(2):
         state, _ = _sweep_elbos(state, data, hyper_arr)
-    rng = np.random.default_rng(4)
-    shift = lambda a, scale: a + scale * rng.standard_normal(a.shape)  # noqa: E731
-    state = state._replace(
-        w_mean=shift(state.w_mean, 0.1),
-        w_cov=cavi.FullCovariance(1.7 * cavi.data.cov_matrices(state.w_cov)),
-        h_mean=shift(state.h_mean, 0.3),
-        h_cov=0.6 * state.h_cov,
-        wh_cov=shift(0.5 * state.wh_cov, 1e-3),
-        b_mean=shift(state.b_mean, 0.1),
-        b_var=3.0 * state.b_var,
-        M_mean=shift(state.M_mean, 0.1),
-        M_var=2.0 * state.M_var,
-        alpha_shape=0.5 * state.alpha_shape,
-        alpha_rate=0.7 * state.alpha_rate,
-        lam_shape=1.3 * state.lam_shape,
-        lam_rate=1.5 * state.lam_rate,
-        beta_shape=0.8 * state.beta_shape,
-    )
+    joint = state.wh_cov
+    state = _perturb(state._replace(wh_cov=None), seed=4)  # the mean-field factors as test_cavi perturbs them
+    rng = np.random.default_rng(5)
+    state = state._replace(wh_cov=0.5 * joint + 1e-3 * rng.standard_normal(joint.shape),
+                           beta_shape=0.8 * state.beta_shape)
     return data, hyper_arr, state
 
 

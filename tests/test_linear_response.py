@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.stats
-from test_cavi import HYPER, HYPER_ARR, _latent_data, _with_missing
+from test_cavi import HYPER, HYPER_ARR, small  # noqa: F401  (small is a fixture)
 
 from lmpromp_ppl.errors import LmprompError
 from lmpromp_ppl.inference import cavi
@@ -30,12 +30,6 @@ from lmpromp_ppl.inference.cavi.updates import JOINT_UPDATES
 from lmpromp_ppl.models.hyper import Hyperparameters
 
 V = HYPER.latent_dim
-
-
-@pytest.fixture(scope="module")
-def small():
-    data, _ = _latent_data(seed=1, L=8, T=12, width=0.5)
-    return {"shared": data, "missing": _with_missing(data, seed=2, fraction=0.2)}
 
 
 def _fit(model_data, hyper, family="rowwise", tol=1e-12):

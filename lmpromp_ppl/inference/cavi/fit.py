@@ -11,7 +11,7 @@ from jax import Array
 
 from lmpromp_ppl._progress import reporter
 from lmpromp_ppl.data.core import ModelData
-from lmpromp_ppl.errors import LmprompError
+from lmpromp_ppl.errors import EngineDivergedError, LmprompError
 from lmpromp_ppl.inference.cavi.data import check_model_data, sufficient_statistics
 from lmpromp_ppl.inference.cavi.init import init_mixture_state, init_state
 from lmpromp_ppl.inference.cavi.restarts import CaviFit, best_of_restarts, check_options
@@ -249,6 +249,11 @@ def fit_lr(
     start = time.perf_counter()
     lr, compile_seconds = linear_response(result.state, cavi_data, hyper_arr, timed=True)
     lr_seconds = time.perf_counter() - start - compile_seconds
+    if not (np.all(np.isfinite(np.asarray(lr.cov))) and float(lr.residual) < 1e-6):
+        raise EngineDivergedError(
+            "the linear response failed: the bound's Hessian is not positive definite at the fitted state "
+            f"(relative residual {float(lr.residual):.3g}); did the fit converge? raise max_iter or lower tol"
+        )
     inputs = model_inputs("lmpromp", "wh", data)
     learned = bool(result.state.beta_learned)
     _, ratios = global_log_ratios(key_ratio, lr, inputs, hyper, POOL, learned)

@@ -83,7 +83,7 @@ class LinearResponse(NamedTuple):
     mean : (n,) :math:`E_q[g]` in the coordinates of ``basis``
     cov : (n, n) :math:`\\Sigma_{LR}` in those coordinates
     basis : (d, d) orthogonal U: b = U b', M = U M' (the identity on the general path)
-    residual : () the largest relative residual of the conjugate-gradient solves
+    residual : () the largest relative residual :math:`\\|HX - J^T\\|/\\|J^T\\|` of the solves (per column)
     """
 
     mean: Array
