@@ -43,10 +43,7 @@ def test_fit_reports_the_linear_response_and_its_importance_diagnostics(result):
     assert info["psis_khat"] is None or np.isfinite(info["psis_khat"])
     assert info["importance_resampled"] == (info["psis_khat"] is not None and info["psis_khat"] < 0.7)
     assert result.summary["converged"]
-    draws = result.posterior_draws(200, jax.random.key(0))
-    reference = lp.fit(DATASET, engine="cavi", num_basis=4, hyper=lp.preset("default", latent_dim=2), seed=1)
-    assert {k: np.shape(v) for k, v in draws.items()} == {
-        k: np.shape(v) for k, v in reference.posterior_draws(200, jax.random.key(0)).items()}
+    draws = result.posterior_draws(200, jax.random.key(0))  # the sites and dims: tests/test_layout.py
     # the correction widens the offset's marginals relative to the factor q(b)
     q_sd = float(np.sqrt(result.state.state.b_var[0]))
     assert np.median(np.std(np.asarray(draws["b"])[0], axis=0)) > 1.2 * q_sd

@@ -9,6 +9,7 @@ import lmpromp_ppl as lp
 DATASET = "synthetic:latent?L=6&D=2&J=3&V=2&T=15&seed=1"
 OPTIONS = {
     "cavi": {},
+    "cavi_lr": {},
     "nuts": {"num_chains": 2, "num_warmup": 150, "num_samples": 150},
     "svi_meanfield": {"num_steps": 400},
     "svi_autonormal": {"num_steps": 400},

@@ -49,7 +49,7 @@ JOINT_QUANTITIES = ("b", "alpha", "lam", "gram_eig", "mu_w")
 #: Quantities whose R-hat and ESS judge the reference.
 RELIABILITY_QUANTITIES = ("b", "alpha", "lam", "gram_eig", "pred_mean", "pred_sd", "w", "mu_w")
 #: Bound (bytes before compression) on the posterior draws each engine's posterior.nc keeps.
-REPORT_DRAW_BYTES = 200_000
+REPORT_DRAW_BYTES = 100_000
 
 
 #: The default engine list of ``compare``: every engine offered for the model.
