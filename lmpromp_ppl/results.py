@@ -48,7 +48,7 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import numpy as np
 import xarray as xr
@@ -152,6 +152,13 @@ def kept_draws(draws: dict, max_bytes: float) -> np.ndarray | None:
         return None
     keep = min(n, max(MIN_SAVED_DRAWS, int(max_bytes // per_draw)))
     return np.unique(np.linspace(0, n - 1, keep).round().astype(int))
+
+
+class SavedLinearResponse(NamedTuple):
+    """What a saved ``cavi_lr`` fit holds: the joint-family CAVI state and the linear-response Gaussian."""
+
+    state: object
+    lr: object
 
 
 def _state_dataset(state) -> xr.Dataset:
@@ -504,6 +511,7 @@ def load(path: str | Path) -> FitResult:
 
         ds = tree["linear_response"].to_dataset()
         lr = cavi.LinearResponse(**{name: np.asarray(ds[name].values) for name in cavi.LinearResponse._fields})
+        result.state = SavedLinearResponse(state, lr)
         result.sampler = lambda k, n: cavi.sample_lr(k, lr, state, n, bool(state.beta_learned))
         result.log_density = lambda draws: log_q_lr(lr, state, draws)
     return result

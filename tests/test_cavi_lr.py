@@ -59,8 +59,9 @@ def test_saved_fit_round_trips_the_family_and_the_linear_response(result, tmp_pa
     result.save(tmp_path / "fit", key=jax.random.key(2))
     back = lp.load(tmp_path / "fit")
     assert back.engine == "cavi_lr"
-    assert back.state.wh_cov is not None
-    np.testing.assert_array_equal(np.asarray(back.state.wh_cov), np.asarray(result.state.state.wh_cov))
+    assert back.state.state.wh_cov is not None
+    np.testing.assert_array_equal(np.asarray(back.state.state.wh_cov), np.asarray(result.state.state.wh_cov))
+    np.testing.assert_array_equal(np.asarray(back.state.lr.cov), np.asarray(result.state.lr.cov))
     draws = back.sampler(jax.random.key(4), 50)
     assert np.shape(draws["M"]) == (50,) + np.shape(result.state.state.M_mean[0])
     assert np.all(np.isfinite(np.asarray(back.log_density(draws))))
@@ -100,3 +101,21 @@ def test_sbc_replicates_are_vmapped_and_equal_the_single_fit():
                                   cavi.hyper_arrays(hyper, 0.0))
     np.testing.assert_allclose(np.asarray(batched.cov[1]), np.asarray(single.cov), rtol=1e-8,
                                atol=1e-12 * float(np.max(np.abs(single.cov))))
+
+
+def test_importance_resampled_draws_follow_the_weights(result):
+    """The resampling path: draws of every site, globals from the pool by the PSIS weights, locals exact."""
+    forced = result.state._replace(resampled=True)
+    draws = forced.sample(jax.random.key(5), 300)
+    plain = result.state.sample(jax.random.key(5), 300)
+    assert set(draws) == set(plain)
+    for name in draws:
+        assert np.shape(draws[name]) == np.shape(plain[name]), name
+        assert np.all(np.isfinite(np.asarray(draws[name]))), name
+    # resampling repeats pool members: fewer distinct alpha values than draws when weights are uneven
+    assert len(np.unique(np.asarray(draws["alpha"]))) < 300
+    # the locals are drawn given each global draw: w_i sits near b + M h_i for its own draw
+    resid = np.asarray(draws["w"]) - np.asarray(draws["b"])[:, None] - np.einsum(
+        "ndv,niv->nid", np.asarray(draws["M"]), np.asarray(draws["h"]))
+    alpha = np.asarray(draws["alpha"])
+    assert abs(np.mean(resid**2 * alpha[:, None, None]) - 1.0) < 0.5
