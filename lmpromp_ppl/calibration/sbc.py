@@ -351,8 +351,8 @@ def _cavi_lr_records(problem, seed, indices, simulated, options, engine_id) -> l
     """``cavi_lr`` replicates: one vmapped joint-family fit and linear response, then per replicate the
     importance ratios on the collapsed model and (k-hat < 0.7, ``resample="auto"``) resampled draws."""
     from lmpromp_ppl.inference.cavi import fit_cavi_batched, linear_response_batched
-    from lmpromp_ppl.inference.cavi.importance import POOL, global_draws, global_log_ratios
-    from lmpromp_ppl.inference.psis import KHAT_RESAMPLE, psis
+    from lmpromp_ppl.inference.cavi.importance import POOL, global_draws, global_log_ratios, resample_pool, resamples
+    from lmpromp_ppl.inference.psis import psis
     from lmpromp_ppl.models.registry import model_inputs
 
     options = {"tol": 1e-8, "max_iter": 2000, "family": "rowwise", "resample": "auto", **options}
@@ -368,10 +368,9 @@ def _cavi_lr_records(problem, seed, indices, simulated, options, engine_id) -> l
         one = jax.tree.map(lambda leaf: leaf[r], lr)
         pool, ratios = global_log_ratios(k_ratio, one, model_inputs("lmpromp", "wh", data), hyper, POOL, False)
         log_weights, khat, _ = psis(ratios)
-        resampled = resample == "auto" and khat is not None and khat < KHAT_RESAMPLE
+        resampled = resamples(resample, khat)
         if resampled:
-            pick = np.asarray(jax.random.choice(k_pick, POOL, (problem.num_draws,), p=jnp.exp(log_weights)))
-            draws = {k: np.asarray(v)[pick] for k, v in pool.items()}
+            draws = {k: np.asarray(v) for k, v in resample_pool(k_pick, pool, log_weights, problem.num_draws).items()}
         else:
             draws = {k: np.asarray(v) for k, v in global_draws(k_pick, one, problem.num_draws, False, d, V).items()}
         info = {"converged": bool(fit.converged[r]), "iterations": int(fit.iterations[r]),

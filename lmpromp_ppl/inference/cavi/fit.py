@@ -234,9 +234,9 @@ def fit_lr(
     """
     import time
 
-    from lmpromp_ppl.inference.cavi.importance import POOL, global_log_ratios
+    from lmpromp_ppl.inference.cavi.importance import POOL, global_log_ratios, resamples
     from lmpromp_ppl.inference.cavi.linear_response import linear_response
-    from lmpromp_ppl.inference.psis import KHAT_RESAMPLE, psis
+    from lmpromp_ppl.inference.psis import psis
     from lmpromp_ppl.models.registry import model_inputs
 
     if resample not in RESAMPLE_CHOICES:
@@ -258,5 +258,4 @@ def fit_lr(
     learned = bool(result.state.beta_learned)
     _, ratios = global_log_ratios(key_ratio, lr, inputs, hyper, POOL, learned)
     _, khat, note = psis(ratios)
-    resampled = resample == "auto" and khat is not None and khat < KHAT_RESAMPLE
-    return CaviLrFit(result, lr, lr_seconds, compile_seconds, khat, note, bool(resampled), inputs, data, hyper)
+    return CaviLrFit(result, lr, lr_seconds, compile_seconds, khat, note, resamples(resample, khat), inputs, data, hyper)

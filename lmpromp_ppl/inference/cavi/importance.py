@@ -31,31 +31,38 @@ from jax import Array
 from numpyro.infer.util import log_density
 
 from lmpromp_ppl.data.core import DemoStatistics
-from lmpromp_ppl.inference.cavi.linear_response import LinearResponse, log_q_globals, split_quantities
-from lmpromp_ppl.inference.psis import psis
+from lmpromp_ppl.inference.cavi.linear_response import LinearResponse, gaussian_draws, log_q_globals, split_quantities
+from lmpromp_ppl.inference.psis import KHAT_RESAMPLE, psis
 from lmpromp_ppl.models.collapsed import lmpromp_collapsed_model
 from lmpromp_ppl.models.conditionals import draw_integrated_sites
 from lmpromp_ppl.models.hyper import Hyperparameters
 
-__all__ = ["global_draws", "global_log_ratios", "importance_draws", "POOL"]
+__all__ = ["global_draws", "global_log_ratios", "importance_draws", "resamples", "resample_pool", "POOL"]
 
 #: Proposals drawn for one importance-resampled set of draws (at least four per draw kept).
 POOL = 4000
 
 
-def _gaussian_draws(key: Array, lr: LinearResponse, num_draws: int) -> Array:
-    z = jax.random.normal(key, (num_draws, lr.mean.shape[0]))
-    return lr.mean + z @ jnp.linalg.cholesky(lr.cov + 1e-12 * jnp.max(jnp.diagonal(lr.cov)) * jnp.eye(lr.cov.shape[0])).T
-
-
 def global_draws(key: Array, lr: LinearResponse, num_draws: int, learned: bool, d: int, V: int) -> dict:
     """``num_draws`` draws of the global sites from the linear-response Gaussian."""
-    return split_quantities(_gaussian_draws(key, lr, num_draws), lr.basis, d, V, learned)
+    return split_quantities(gaussian_draws(key, lr, num_draws), lr.basis, d, V, learned)
+
+
+def resamples(mode: str, khat: float | None) -> bool:
+    """Whether draws are importance-resampled: ``mode`` ``"auto"`` and k-hat below :data:`KHAT_RESAMPLE`."""
+    return mode == "auto" and khat is not None and khat < KHAT_RESAMPLE
+
+
+def resample_pool(key: Array, pool: dict, log_weights: np.ndarray, num_draws: int) -> dict:
+    """``num_draws`` members of ``pool`` (site -> (S, ...)) drawn with replacement by the normalised weights."""
+    size = next(iter(pool.values())).shape[0]
+    index = jax.random.choice(key, size, (int(num_draws),), p=jnp.exp(jnp.asarray(log_weights)))
+    return {k: v[index] for k, v in pool.items()}
 
 
 @partial(jax.jit, static_argnames=("num_draws", "learned", "d", "V", "hyper"))
 def _ratios(key, lr, inputs, hyper: Hyperparameters, num_draws: int, learned: bool, d: int, V: int):
-    g = _gaussian_draws(key, lr, num_draws)
+    g = gaussian_draws(key, lr, num_draws)
     draws = split_quantities(g, lr.basis, d, V, learned)
     log_p = jax.vmap(lambda p: log_density(lmpromp_collapsed_model, (inputs, hyper), {"collapse_h": True}, p)[0])(
         draws)
@@ -94,8 +101,7 @@ def importance_draws(key: Array, lr: LinearResponse, inputs, hyper: Hyperparamet
     if log_weights is None:
         picked = {k: v[: int(num_draws)] for k, v in draws.items()}
     else:
-        index = jax.random.choice(k_pick, size, (int(num_draws),), p=jnp.exp(jnp.asarray(log_weights)))
-        picked = {k: v[index] for k, v in draws.items()}
+        picked = resample_pool(k_pick, draws, log_weights, num_draws)
     local_inputs = inputs if isinstance(inputs, DemoStatistics) else data
     picked.update(draw_integrated_sites("lmpromp", "wh", k_local, local_inputs, hyper, picked))
     return picked, khat, note

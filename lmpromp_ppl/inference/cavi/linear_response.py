@@ -66,6 +66,7 @@ __all__ = [
     "log_q_lr",
     "log_q_globals",
     "split_quantities",
+    "gaussian_draws",
     "CG_TOL",
     "METHODS",
     "response",
@@ -284,11 +285,15 @@ def sample_lr(key: Array, lr: LinearResponse, state: CaviState, num_draws: int, 
 
     k_g, k_l = jax.random.split(key)
     d, V = state.M_mean.shape[1:]
-    z = jax.random.normal(k_g, (num_draws, lr.mean.shape[0]))
-    g = lr.mean + z @ jnp.linalg.cholesky(lr.cov + _jitter(lr.cov)).T
     draws = dict(sample_q(k_l, state, num_draws, learned_beta))
-    draws.update(split_quantities(g, lr.basis, d, V, learned_beta))
+    draws.update(split_quantities(gaussian_draws(k_g, lr, num_draws), lr.basis, d, V, learned_beta))
     return draws
+
+
+def gaussian_draws(key: Array, lr: LinearResponse, num_draws: int) -> Array:
+    """(num_draws, n) draws of g from :math:`\\mathcal N(E_q[g], \\Sigma_{LR})` in the coordinates of ``lr.basis``."""
+    z = jax.random.normal(key, (num_draws, lr.mean.shape[0]))
+    return lr.mean + z @ jnp.linalg.cholesky(lr.cov + _jitter(lr.cov)).T
 
 
 def split_quantities(g: Array, basis: Array, d: int, V: int, learned: bool) -> dict:
