@@ -50,5 +50,11 @@ real-data: install
 	$(VENV)/bin/lmpromp real-data --out reports/real-data --engines cavi --max-folds 7 --mixture-seeds 10 --seed 0 --force
 	$(VENV)/bin/lmpromp real-data --out reports/real-data --engines nuts --nuts-datasets all --nuts-folds 7 --mixture-seeds 0 --seed 0 --merge --force
 
+# regenerate reports/timing/: prediction with unknown timing, leave-one-out, seven folds per
+# dataset (synthetic durations, eight LASA shapes, GunPoint; about 45 minutes on 2 cores)
+.PHONY: timing-report
+timing-report: install
+	$(VENV)/bin/lmpromp timing --out reports/timing --max-folds 7 --seed 0 --force
+
 clean:
 	rm -rf $(VENV) $(DEMO_OUT)

@@ -30,7 +30,7 @@ app = typer.Typer(
 def _register() -> None:
     import importlib
 
-    for module in ("data", "fit", "compare", "predict", "reproduce", "bench", "sbc", "demo", "real_data"):
+    for module in ("data", "fit", "compare", "predict", "reproduce", "bench", "sbc", "demo", "real_data", "timing"):
         try:
             importlib.import_module(f"lmpromp_ppl.cli.{module}")
         except ModuleNotFoundError as exc:

@@ -12,7 +12,7 @@ from lmpromp_ppl.cli import app
 from lmpromp_ppl.cli._common import SEED_MAX, positive, claim_out_dir
 from lmpromp_ppl.errors import DataError, LmprompError
 
-__all__ = ["predict_command", "read_observation"]
+__all__ = ["predict_command", "read_observation", "read_via"]
 
 
 def read_observation(path: Path, num_dofs: int) -> tuple[np.ndarray, np.ndarray]:
@@ -56,12 +56,70 @@ def read_observation(path: Path, num_dofs: int) -> tuple[np.ndarray, np.ndarray]
     return t, y
 
 
+def _parse_duration(text: str | None):
+    if text is None:
+        return None
+    if text == "estimate":
+        return "estimate"
+    try:
+        value = float(text)
+    except ValueError:
+        raise DataError(f"--duration must be a positive number of seconds or 'estimate', got {text!r}") from None
+    if not np.isfinite(value) or value <= 0:
+        raise DataError(f"--duration must be positive and finite, got {text!r}")
+    return value
+
+
+def read_via(path: Path, num_dofs: int):
+    """Read via-points (``--via``): see the option's help; the position sd defaults to 0 (pass exactly)."""
+    from lmpromp_ppl.predict.timing import ViaPoints
+
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"cannot read via-point file {path}: no such file")
+    sd = 0.0
+    if path.suffix == ".npz":
+        try:
+            with np.load(path, allow_pickle=False) as f:
+                keys = set(f.files)
+                where = "phase" if "phase" in keys else "t" if "t" in keys else None
+                if where is None or "y" not in keys:
+                    raise DataError(f"{path}: needs 'phase' (V,) or 't' (V,), and 'y' (V, D); found {sorted(keys)}")
+                at, pos = np.asarray(f[where], dtype=float), np.asarray(f["y"], dtype=float)
+                vel = np.asarray(f["dy"], dtype=float) if "dy" in keys else None
+                sd = np.asarray(f["sd"], dtype=float) if "sd" in keys else 0.0
+        except (OSError, ValueError) as exc:
+            raise DataError(f"cannot read via-point file {path}: {exc}") from None
+    elif path.suffix == ".csv":
+        try:
+            table = np.atleast_1d(np.genfromtxt(path, delimiter=",", names=True, dtype=float))
+        except (OSError, ValueError) as exc:
+            raise DataError(f"cannot read via-point file {path}: {exc}") from None
+        names = table.dtype.names or ()
+        if not names or names[0] not in ("phase", "t") or len(names) not in (1 + num_dofs, 1 + 2 * num_dofs):
+            raise DataError(f"{path}: columns must be phase or t, then {num_dofs} positions and optionally "
+                            f"{num_dofs} velocities; found {list(names)}")
+        where = names[0]
+        at = np.asarray(table[where], dtype=float)
+        cols = np.stack([np.asarray(table[n], dtype=float) for n in names[1:]], axis=-1)
+        pos, vel = cols[:, :num_dofs], (cols[:, num_dofs:] if cols.shape[1] > num_dofs else None)
+    else:
+        raise DataError(f"via-point file {path} must end in .npz or .csv")
+    if pos.ndim == 1 and num_dofs == 1:
+        pos = pos[:, None]
+        vel = None if vel is None else vel.reshape(-1, 1)
+    if at.ndim != 1 or pos.shape != (at.shape[0], num_dofs):
+        raise DataError(f"{path}: needs {where} (V,) and y (V, {num_dofs}), got {at.shape} and {pos.shape}")
+    return ViaPoints(at, pos, vel, sd, sd, timed=where == "t")
+
+
 @app.command("predict")
 def predict_command(
     fit_dir: Path = typer.Argument(..., help="Directory written by `lmpromp fit`."),
     observe: Path = typer.Option(..., "--observe", help="Observed (partial) demonstration: .npz with t (T,), y (T, D) or .csv; NaN = unobserved."),
     out: Path = typer.Option(..., "--out", help="Output directory (prediction.npz, prediction.png)."),
-    duration: Optional[float] = typer.Option(None, callback=positive, help="Map times to phases as t / duration (default: t are phases)."),
+    duration: Optional[str] = typer.Option(None, help="SECONDS: map times to phases as t / duration; estimate: infer the duration (times in seconds from the movement's start). Default: t are phases."),
+    via: Optional[Path] = typer.Option(None, "--via", help="Via-points: .npz with phase (V,) or t (V,) seconds, y (V, D), optional dy (V, D) and sd; or .csv with a phase or t column then D position and optionally D velocity columns; NaN = free."),
     noise_sd: Optional[float] = typer.Option(None, "--noise-sd", callback=positive, help="Observation noise s.d. in data units (default: the fit's, from its learned beta)."),
     bayesian: bool = typer.Option(True, "--bayesian/--plug-in", help="Average over posterior draws (default) or plug in the posterior mean."),
     exact: bool = typer.Option(True, "--exact/--thesis-approximation", help="Exact p(w|o) (default) or the thesis's approximation, eqs. 4.6-4.7."),
@@ -78,41 +136,57 @@ def predict_command(
     from lmpromp_ppl.predict.from_fit import predict_from_fit
     from lmpromp_ppl.results import load
 
+    timing = _parse_duration(duration)
     if not fit_dir.exists():
         raise LmprompError(f"fit directory {fit_dir} does not exist; write one with `lmpromp fit ... --out {fit_dir}`")
     if not fit_dir.is_dir():
         raise LmprompError(f"{fit_dir} is not a directory; pass the directory written by `lmpromp fit`")
     result = load(fit_dir)
     t, y = read_observation(observe, result.num_dofs)
-    if duration is not None:
-        phase = t / duration
-    else:
-        phase = t
-    if np.any(phase < 0) or np.any(phase > 1):
+    if timing is None and (np.any(t < 0) or np.any(t > 1)):
         raise DataError("observation phases must lie in [0, 1]; pass --duration to map times to phases")
-    pred = predict_from_fit(result, phase, y, noise_sd=noise_sd, bayesian=bayesian, exact=exact,
-                            num_samples=samples, key=jax.random.key(seed))
+    via_points = None if via is None else read_via(via, result.num_dofs)
+    pred = predict_from_fit(result, t, y, duration=timing, via=via_points, noise_sd=noise_sd, bayesian=bayesian,
+                            exact=exact, num_samples=samples, key=jax.random.key(seed))
     out_dir = claim_out_dir(out, force)
+    extra = {}
+    if timing is not None:
+        extra = dict(time=pred.time, time_mean=pred.time_mean, time_sd=pred.time_sd)
+    if timing == "estimate":
+        extra.update(duration=np.asarray(pred.duration), duration_interval=np.asarray(pred.duration_interval))
     np.savez(out_dir / "prediction.npz", phase=pred.phase, mean=pred.mean, sd=pred.sd, sd_obs=pred.sd_obs,
-             samples=pred.samples)
+             samples=pred.samples, **extra)
     fig = Figure(figsize=(4.5 * result.num_dofs, 3.2), layout="constrained")
     FigureCanvasAgg(fig)
     axes = fig.subplots(1, result.num_dofs, squeeze=False)[0]
     for k, ax in enumerate(axes):
-        for s in pred.samples[:, :, k]:
-            ax.plot(pred.phase, s, color="tab:blue", alpha=0.15, lw=0.8)
-        ax.fill_between(pred.phase, pred.mean[:, k] - 1.645 * pred.sd_obs[:, k], pred.mean[:, k] + 1.645 * pred.sd_obs[:, k],
-                        color="tab:blue", alpha=0.12, label="90 % band, new observation")
-        ax.fill_between(pred.phase, pred.mean[:, k] - 1.645 * pred.sd[:, k], pred.mean[:, k] + 1.645 * pred.sd[:, k],
-                        color="tab:blue", alpha=0.25, label="90 % band, movement")
-        ax.plot(pred.phase, pred.mean[:, k], color="tab:blue", lw=2, label="predicted mean")
         ok = np.isfinite(y[:, k])
-        ax.plot(phase[ok], y[ok, k], "o", color="black", ms=3, label="observed")
+        if timing is None:
+            for path in pred.samples[:, :, k]:
+                ax.plot(pred.phase, path, color="tab:blue", alpha=0.15, lw=0.8)
+            ax.fill_between(pred.phase, pred.mean[:, k] - 1.645 * pred.sd_obs[:, k],
+                            pred.mean[:, k] + 1.645 * pred.sd_obs[:, k], color="tab:blue", alpha=0.12,
+                            label="90 % band, new observation")
+            x, mean, sd = pred.phase, pred.mean[:, k], pred.sd[:, k]
+        else:  # real time: the observation, the predicted rest, the end's interval
+            x, mean, sd = pred.time, pred.time_mean[:, k], pred.time_sd[:, k]
+            if timing == "estimate":
+                ax.axvspan(*pred.duration_interval, color="tab:orange", alpha=0.15, label="90 % interval of the end")
+        ax.fill_between(x, mean - 1.645 * sd, mean + 1.645 * sd, color="tab:blue", alpha=0.25, label="90 % band, movement")
+        ax.plot(x, mean, color="tab:blue", lw=2, label="predicted mean")
+        ax.plot(t[ok], y[ok, k], "o", color="black", ms=3, label="observed")
+        if via_points is not None:
+            at = via_points.at if timing is None or via_points.timed else via_points.at * pred.duration
+            okv = np.isfinite(via_points.position[:, k])
+            ax.plot(at[okv], via_points.position[okv, k], "D", color="tab:red", ms=6, label="via-points")
         name = result.dof_names[k] if result.dof_names else f"DoF {k}"
-        ax.set_xlabel("phase")
+        ax.set_xlabel("phase" if timing is None else "time from the movement's start")
         ax.set_ylabel(f"{name} (data units)")
         ax.set_title(name)
     axes[0].legend(fontsize=8)
     fig.savefig(out_dir / "prediction.png", dpi=110)
+    if not quiet and timing == "estimate":
+        lo, hi = pred.duration_interval
+        typer.echo(f"estimated duration {pred.duration:.4g} (90 % interval {lo:.4g} to {hi:.4g}), in the observation's time unit")
     if not quiet:
         typer.echo(f"predicted {result.model}/{result.engine} from {int(np.isfinite(y).sum())} observed values; wrote {out_dir}")

@@ -85,6 +85,8 @@ def latent_manifold(
     alpha: float = 100.0,
     beta: float = 400.0,
     seed: int = 0,
+    duration: float = 1.0,
+    spread: float = 0.0,
 ) -> Demonstrations:
     r"""Demonstrations drawn from the LMProMP generative model.
 
@@ -113,11 +115,16 @@ def latent_manifold(
     alpha : weight precision
     beta : observation-noise precision
     seed : seed of ``np.random.default_rng``
+    duration, spread : demonstration i lasts
+        :math:`T_i = \text{duration} \cdot e^{\text{spread}\, \epsilon_i}`,
+        :math:`\epsilon_i \sim \mathcal N(0, 1)` (drawn after everything else, so
+        the positions do not depend on them); times ``T_i * linspace(0, 1, T)``
 
     Returns
     -------
     Demonstrations
-        Times = phases ``linspace(0, 1, T)``; ``metadata`` holds ``b`` (d,),
+        Times = phases ``linspace(0, 1, T)`` by default; ``metadata`` holds
+        ``durations`` (L,) and ``b`` (d,),
         ``M`` (d, V), ``h`` (L, V), ``w`` (L, d), ``alpha``, ``beta`` and
         ``num_basis`` (= J).
     """
@@ -130,6 +137,12 @@ def latent_manifold(
     alpha = _check_positive(name, "alpha", alpha)
     beta = _check_positive(name, "beta", beta)
     seed = _check_seed(name, seed)
+    duration = _check_positive(name, "duration", duration)
+    if isinstance(spread, bool) or not isinstance(spread, (int, float, np.floating, np.integer)) or not (
+        np.isfinite(spread) and 0 <= spread <= 1
+    ):
+        raise DataError(f"synthetic:{name}: spread must be a number in [0, 1], got {spread!r}")
+    spread = float(spread)
     d = D * J
     if V > d:
         raise DataError(f"synthetic:{name}: V must be at most D * J = {d}, got {V}")
@@ -143,8 +156,11 @@ def latent_manifold(
     phase = np.linspace(0.0, 1.0, T)
     y = _trajectories(phase, w, D, J) + rng.standard_normal((L, T, D)) / np.sqrt(beta)
     params = dict(L=L, D=D, J=J, V=V, T=T, alpha=alpha, beta=beta, seed=seed)
+    if duration != 1.0 or spread != 0.0:
+        params.update(duration=duration, spread=spread)
+    durations = duration * np.exp(spread * rng.standard_normal(L)) if spread > 0 else np.full(L, duration)
     return Demonstrations(
-        times=tuple(phase for _ in range(L)),
+        times=tuple(phase * durations[i] if duration != 1.0 or spread > 0 else phase for i in range(L)),
         positions=tuple(y),
         name=f"synthetic:{name}?{_query(params)}",
         metadata={
@@ -155,6 +171,7 @@ def latent_manifold(
             "alpha": np.asarray(alpha),
             "beta": np.asarray(beta),
             "num_basis": np.asarray(J),
+            "durations": durations,
         },
     )
 

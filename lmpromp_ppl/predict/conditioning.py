@@ -53,6 +53,7 @@ __all__ = [
     "condition",
     "prior",
     "condition_draws",
+    "condition_further",
     "num_sample_dims",
 ]
 
@@ -287,6 +288,33 @@ def condition_mixture(
     )
 
 
+def condition_further(conditioned: Conditioned, via: Observation) -> Conditioned:
+    r"""Condition a predictive once more, on ``via`` (via-points), component by component.
+
+    Given :math:`p(\mathbf{w} | \mathbf{o}) = \sum_k z_k \mathcal{N}(\boldsymbol\mu_k, \Sigma_k)`,
+
+    .. math::
+
+        p(\mathbf{w} | \mathbf{o}, \mathbf{v}) = \sum_k z'_k\,
+        \mathcal{N}(\mathbf{w} | \boldsymbol\mu_{k|v}, \Sigma_{k|v}), \qquad
+        z'_k \propto z_k\, \mathcal{N}(\mathbf{v} | \Psi_v \boldsymbol\mu_k, \Sigma_v + \Psi_v\Sigma_k\Psi_v^T),
+
+    which is the chain rule :math:`p(\mathbf{w}|\mathbf{o},\mathbf{v}) \propto p(\mathbf{w}|\mathbf{o})\,
+    p(\mathbf{v}|\mathbf{w})`: the same as conditioning on the rows of
+    :math:`\mathbf{o}` and :math:`\mathbf{v}` at once (tests/test_timing.py checks it
+    against the joint Gaussian), and it lets via-points be noiseless while the
+    observation has more rows than weights.  For the LMProMP this is the exact
+    conditional through :math:`\mathbf{h}` (``exact=True``); for the mixture each
+    component's responsibility also learns from the via-points.  ``latent`` is
+    dropped (``None``): prediction needs the weights.
+    """
+    weights = conditioned.weights
+    means, covs, log_marginal = jax.vmap(lambda m, c: condition_gaussian(m, c, via))(weights.means, weights.covs)
+    log_joint = weights.log_weights + log_marginal
+    log_via = logsumexp(log_joint)
+    return Conditioned(GaussianMixture(log_joint - log_via, means, covs), None, conditioned.log_evidence + log_via)
+
+
 def _check_model(model: str) -> None:
     if model not in MODELS:
         raise LmprompError(f"unknown model {model!r}; choose from {list(MODELS)}")
@@ -300,19 +328,23 @@ def condition(
     gamma: ArrayLike = 1.0,
     *,
     exact: bool = True,
+    via: Observation | None = None,
 ) -> Conditioned:
     """Plug-in predictive of ``model`` (``"promp"``, ``"lmpromp"`` or ``"mixture"``) given ``observation``.
 
     Dispatches to :func:`condition_promp` (eqs. 3.2, 3.3; ``gamma`` and
     ``exact`` unused), :func:`condition_lmpromp` (eqs. 4.4-4.7) or
-    :func:`condition_mixture` (Sec. 4.2.2).
+    :func:`condition_mixture` (Sec. 4.2.2); then, with ``via`` (via-points),
+    :func:`condition_further`.
     """
     _check_model(model)
     if model == "promp":
-        return condition_promp(params, observation)
-    if model == "lmpromp":
-        return condition_lmpromp(params, observation, gamma, exact=exact)
-    return condition_mixture(params, observation, gamma, exact=exact)
+        out = condition_promp(params, observation)
+    elif model == "lmpromp":
+        out = condition_lmpromp(params, observation, gamma, exact=exact)
+    else:
+        out = condition_mixture(params, observation, gamma, exact=exact)
+    return out if via is None else condition_further(out, via)
 
 
 def _num_weights(model: str, params: Mapping[str, ArrayLike]) -> int:
@@ -363,6 +395,7 @@ def condition_draws(
     *,
     exact: bool = True,
     reweight: bool = False,
+    via: Observation | None = None,
 ) -> Conditioned:
     r"""Bayesian predictive: condition every posterior draw and average (any engine).
 
@@ -380,7 +413,9 @@ def condition_draws(
     (variance + mean^2) - mean^2.  By default :math:`\omega_s = 1/S` (the
     posterior given the training data).  ``reweight=True`` uses
     :math:`\omega_s \propto p(\mathbf{o} | \theta_s)`, the posterior that also
-    conditions the parameters on the new observations.
+    conditions the parameters on the new observations.  ``via`` (via-points)
+    conditions each draw further (:func:`condition_further`); they do not
+    reweight the draws.
 
     Returns
     -------
@@ -397,7 +432,7 @@ def condition_draws(
         )
         for name in SITES[model]
     }
-    return _condition_flat_draws(model, flat, observation, gamma, exact, reweight)
+    return _condition_flat_draws(model, flat, observation, gamma, exact, reweight, via)
 
 
 def _merge_draws(mixture: GaussianMixture | None, log_draw_weights: Array) -> GaussianMixture | None:
@@ -416,8 +451,12 @@ def _condition_flat_draws(
     gamma: ArrayLike,
     exact: bool,
     reweight: bool,
+    via: Observation | None = None,
 ) -> Conditioned:
     per_draw = jax.vmap(lambda p: condition(model, p, observation, gamma, exact=exact))(flat)
+    if via is not None:
+        evidence = per_draw.log_evidence
+        per_draw = jax.vmap(lambda c: condition_further(c, via))(per_draw)._replace(log_evidence=evidence)
     num_draws = per_draw.log_evidence.shape[0]
     log_mean_evidence = logsumexp(per_draw.log_evidence) - math.log(num_draws)
     if reweight:

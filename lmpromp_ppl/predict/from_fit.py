@@ -15,21 +15,39 @@ Two bands are returned: ``sd`` of the movement :math:`\Psi\mathbf w` and
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
+import jax.numpy as jnp
 import numpy as np
 
 from lmpromp_ppl._keys import PREDICTION, seed_key
-from lmpromp_ppl.errors import DataError
-from lmpromp_ppl.predict.conditioning import condition, condition_draws
-from lmpromp_ppl.predict.observations import empty_observation, observe
-from lmpromp_ppl.predict.trajectories import sample_trajectories, trajectory_distribution
 
-__all__ = ["Prediction", "predict_from_fit", "population_prediction", "noise_sd_of"]
+from lmpromp_ppl.errors import DataError, LmprompError
+from lmpromp_ppl.predict.conditioning import SITES, condition, condition_draws
+from lmpromp_ppl.predict.timing import (
+    TimingPosterior,
+    ViaPoints,
+    duration_prior,
+    rows_at,
+    sample_over_timing,
+    timed_moments,
+    timed_rows,
+    timing_posterior,
+    via_rows,
+)
+from lmpromp_ppl.predict.trajectories import sample_trajectories
+
+__all__ = ["Prediction", "predict_from_fit", "population_prediction", "noise_sd_of", "training_durations", "evidence_samples"]
 
 
 class Prediction(NamedTuple):
-    """A predicted trajectory distribution in data units."""
+    """A predicted trajectory distribution in data units.
+
+    With an estimated timing the phase-space moments are averaged over the
+    timing posterior, and ``time``, ``time_mean``, ``time_sd`` give the
+    prediction in real time (seconds from the observation's start).
+    """
 
     phase: np.ndarray  # (P,)
     mean: np.ndarray  # (P, D)
@@ -38,10 +56,16 @@ class Prediction(NamedTuple):
     samples: np.ndarray  # (N, P, D)
     component_weights: np.ndarray  # (K,) responsibilities (1 for single-type models)
     noise_sd: np.ndarray  # (D,) observation noise s.d. in data units
+    duration: float | None = None  # the known or estimated duration (posterior median)
+    duration_interval: np.ndarray | None = None  # (2,) central 90 % interval (estimated timing)
+    time: np.ndarray | None = None  # (Q,) real time from the observation's start
+    time_mean: np.ndarray | None = None  # (Q, D)
+    time_sd: np.ndarray | None = None  # (Q, D)
+    timing: TimingPosterior | None = None
 
 
 def noise_sd_of(result) -> np.ndarray:
-    """Observation-noise s.d. per DoF in data units: :math:`E[\beta]^{-1/2}` when
+    r"""Observation-noise s.d. per DoF in data units: :math:`E[\beta]^{-1/2}` when
     ``beta`` was learned (posterior mean), else the fixed ``hyper.beta``."""
     beta = result.point.get("beta") if result.point else None
     if beta is None and result.draws is not None and "beta" in result.draws:
@@ -50,29 +74,100 @@ def noise_sd_of(result) -> np.ndarray:
     return np.asarray(result.scaling.scale, dtype=float) / np.sqrt(beta)
 
 
+def training_durations(result) -> np.ndarray:
+    """Each training demonstration's duration (last minus first time, the data's time unit), from ``observed_data``."""
+    if not result.observed or "t" not in result.observed:
+        raise LmprompError("this fit holds no training times; estimating the timing needs a fit of demonstrations")
+    t = np.asarray(result.observed["t"], dtype=float)
+    return np.nanmax(t, axis=1) - np.nanmin(t, axis=1)
+
+
+#: The timing grid points that carry this much posterior mass enter the prediction (at most :data:`MAX_TIMINGS`).
+TIMING_MASS = 1.0 - 1e-4
+MAX_TIMINGS = 64
+
+
+def evidence_samples(time: np.ndarray, rule: int | str | None, prior, num_basis: int) -> np.ndarray:
+    r"""Indices of the observed samples whose likelihood weighs the timing.
+
+    The model's noise is independent per sample, but a recording's departure
+    from the basis expansion is smooth: it is correlated over about one basis
+    spacing :math:`1/(J-1)` in phase, so a dense recording (LASA's 1000 samples)
+    counts the same misfit hundreds of times.  Its likelihood then prefers the
+    duration under which *more* basis functions span the observed segment
+    (a shorter one, which fits the segment's detail better) with a spuriously
+    narrow interval.  ``"basis"`` keeps two samples per basis spacing: evenly
+    spaced in time, :math:`\lceil 2 (J - 1)\, t_{\max} / T_{	ext{prior}} 
+ceil + 1`
+    of them, with :math:`T_{	ext{prior}}` the prior median; docs/derivation.md
+    gives the measurements.  An int keeps that many evenly spaced samples; ``None`` keeps all.
+    """
+    time = np.asarray(time, dtype=float)
+    if rule is None:
+        return np.arange(time.size)
+    if rule == "basis":
+        span = float(time.max()) / math.exp(prior.loc) if time.size else 0.0
+        count = int(math.ceil(2.0 * (num_basis - 1) * span)) + 1
+    elif isinstance(rule, (int, np.integer)) and not isinstance(rule, bool) and rule >= 1:
+        count = int(rule)
+    else:
+        raise DataError(f"timing_points must be 'basis', a positive integer or None, got {rule!r}")
+    if time.size <= count:
+        return np.arange(time.size)
+    targets = np.linspace(time.min(), time.max(), count)
+    return np.unique(np.abs(time[None, :] - targets[:, None]).argmin(axis=1))
+
+
+def _draw_sites(result, bayesian: bool, max_draws: int) -> dict:
+    if bayesian:
+        draws = result.posterior_draws()
+        flat = {k: np.asarray(v).reshape((-1,) + np.asarray(v).shape[2:]) for k, v in draws.items() if k in SITES[result.model]}
+        n = next(iter(flat.values())).shape[0]
+        keep = np.linspace(0, n - 1, min(n, max_draws)).astype(int)
+        return {k: jnp.asarray(v[keep]) for k, v in flat.items()}
+    return {k: jnp.asarray(result.point[k])[None] for k in SITES[result.model]}
+
+
 def predict_from_fit(
     result,
     phase: np.ndarray,
     values: np.ndarray,
     *,
+    duration: float | str | None = None,
+    max_start: float = 0.0,
+    timing_points: int | str | None = "basis",
+    via: ViaPoints | None = None,
     noise_sd: float | np.ndarray | None = None,
     bayesian: bool = True,
     exact: bool = True,
     num_phases: int = 100,
     query: np.ndarray | None = None,
+    time_query: np.ndarray | None = None,
     num_samples: int = 20,
     max_draws: int = 200,
     key=None,
 ) -> Prediction:
-    """Condition ``result`` on observed positions and predict the whole movement.
+    """Condition ``result`` on observed positions (and via-points) and predict the whole movement.
 
     Parameters
     ----------
     result : a FitResult (fresh or from :func:`lmpromp_ppl.load`)
-    phase : (T,) phases in [0, 1] of the observations
+    phase : (T,) phases in [0, 1] of the observations, or, with ``duration``
+        given, their times in seconds from the movement's start
     values : (T, D) positions in data units; NaN marks an unobserved entry
         (partial observation of some DoF); T = 0 gives the population
         (unconditioned) movement distribution
+    duration : ``None`` (``phase`` are phases), the movement's duration (times
+        map to phases ``t / duration``), or ``"estimate"``: the posterior over
+        the duration given the observation (:mod:`lmpromp_ppl.predict.timing`),
+        with a log-normal prior from the training durations, and the prediction
+        averaged over it
+    max_start : with ``duration="estimate"``, also estimate the phase at which
+        the observation began, uniform on ``[0, max_start]`` (0: it began with the movement)
+    timing_points : the observed samples that enter the timing's likelihood: ``"basis"``
+        (default, :func:`evidence_samples`), a number of evenly spaced samples, or ``None`` (all)
+    via : via-points (:class:`~lmpromp_ppl.predict.timing.ViaPoints`), at phases or,
+        when ``via.timed``, at seconds from the observation's start (needs a duration)
     noise_sd : observation noise s.d. in data units (scalar or per DoF);
         default :func:`noise_sd_of` the fit
     bayesian : average over posterior draws (default) instead of plugging in
@@ -81,6 +176,8 @@ def predict_from_fit(
         thesis's approximation, eqs. 4.6-4.7
     num_phases : predict at this many equally spaced phases in [0, 1] ...
     query : ... or at these phases
+    time_query : with a duration, the real times (seconds from the observation's start) of
+        ``time_mean``, ``time_sd``; default ``num_phases`` times up to the longest likely end
     key : PRNG key of the sampled trajectories; default: derived from the fit's seed
     """
     values = np.asarray(values, dtype=float)
@@ -92,43 +189,85 @@ def predict_from_fit(
         raise DataError(f"{phase.shape[0]} phases for {values.shape[0]} observed samples")
     if np.any(np.isinf(values)):
         raise DataError("observed positions contain inf")
-    mask = np.isfinite(values)
+    estimate = isinstance(duration, str)
+    if estimate and duration != "estimate":
+        raise DataError(f"duration must be a positive number or 'estimate', got {duration!r}")
+    if not estimate and duration is not None and not (np.isfinite(duration) and duration > 0):
+        raise DataError(f"duration must be positive and finite, got {duration!r}")
+    if max_start and not estimate:
+        raise DataError("max_start needs duration='estimate'")
+    timed = duration is not None
+    if not timed and (np.any(phase < 0) or np.any(phase > 1)):
+        raise DataError("observation phases must lie in [0, 1]; pass a duration to map times to phases")
+    if timed and not estimate and np.any(phase > duration * (1 + 1e-9)):
+        raise DataError(f"observation times exceed the duration {duration}")
+    if via is not None and via.timed and not timed:
+        raise DataError("via-points at times (seconds) need a duration (a number or 'estimate')")
     if noise_sd is None:
         noise_sd = noise_sd_of(result)
     noise = np.broadcast_to(np.asarray(noise_sd, dtype=float), (D,))
-    if phase.size == 0:
-        obs = empty_observation(D * result.num_basis)
-    else:
-        obs = observe(
-            phase, np.where(mask, values, 0.0), noise_sd=noise_sd, num_dofs=D, num_basis=result.num_basis,
-            width=result.width, mask=mask, scaling=result.scaling,
-        )
-    gamma = result.hyper.gamma
-    if bayesian:
-        draws = result.posterior_draws()
-        flat = {k: np.asarray(v).reshape((-1,) + np.asarray(v).shape[2:]) for k, v in draws.items()}
-        n = next(iter(flat.values())).shape[0]
-        keep = np.linspace(0, n - 1, min(n, max_draws)).astype(int)
-        post = condition_draws(result.model, {k: v[keep] for k, v in flat.items()}, obs, gamma, exact=exact)
-    else:
-        post = condition(result.model, result.point, obs, gamma, exact=exact)
-    query = np.linspace(0.0, 1.0, num_phases) if query is None else np.asarray(query, dtype=float)
-    traj = trajectory_distribution(post.weights, query, num_dofs=D, num_basis=result.num_basis, width=result.width)
-    key = seed_key(result.seed, PREDICTION) if key is None else key
-    paths = np.asarray(
-        sample_trajectories(key, post.weights, query, num_samples, num_dofs=D, num_basis=result.num_basis, width=result.width)
+    basis = dict(num_dofs=D, num_basis=result.num_basis, width=result.width)
+    rows = timed_rows(phase, values, noise_sd=noise, scaling=result.scaling, timed=timed)
+    via_part = None if via is None else via_rows(
+        via.at, via.position, velocity=via.velocity, position_sd=via.position_sd, velocity_sd=via.velocity_sd,
+        scaling=result.scaling, timed=via.timed,
     )
+    gamma = result.hyper.gamma
+    draws = _draw_sites(result, bayesian, max_draws)
+    timing = None
+    if estimate:
+        prior = duration_prior(training_durations(result))
+        sub = evidence_samples(phase, timing_points, prior, result.num_basis)
+        evidence_rows = timed_rows(phase[sub], values[sub], noise_sd=noise, scaling=result.scaling, timed=True)
+        timing = timing_posterior(result.model, draws, evidence_rows, prior, gamma, exact=exact, max_start=max_start,
+                                  **basis)
+        order = np.argsort(timing.weights)[::-1]
+        count = min(MAX_TIMINGS, int(np.searchsorted(np.cumsum(timing.weights[order]), TIMING_MASS)) + 1)
+        chosen = order[:count]
+        durations, starts, grid_weights = timing.duration[chosen], timing.start[chosen], timing.weights[chosen]
+    else:
+        durations, starts, grid_weights = np.array([1.0 if duration is None else float(duration)]), np.zeros(1), np.ones(1)
+    posts, component_weights = [], []
+    for T, z0 in zip(durations, starts):
+        obs = rows_at(rows, T, z0, **basis)
+        extra = None if via_part is None else rows_at(via_part, T, z0, **basis)
+        if bayesian:
+            post = condition_draws(result.model, draws, obs, gamma, exact=exact, via=extra)
+        else:
+            post = condition(result.model, {k: v[0] for k, v in draws.items()}, obs, gamma, exact=exact, via=extra)
+        posts.append(post.weights)
+        component_weights.append(np.exp(np.asarray(post.weights.log_weights)))
+    query = np.linspace(0.0, 1.0, num_phases) if query is None else np.asarray(query, dtype=float)
+    span = float(np.max(durations * (1.0 - starts))) if timed else 1.0
+    if time_query is not None and not timed:
+        raise DataError("time_query needs a duration (a number or 'estimate')")
+    if time_query is not None:
+        time = np.asarray(time_query, dtype=float)
+    else:
+        time = np.linspace(0.0, span, num_phases) if timed else None
+    moments = timed_moments(posts, grid_weights, durations, starts, np.zeros(1) if time is None else time, query, **basis)
+    key = seed_key(result.seed, PREDICTION) if key is None else key
+    if len(posts) == 1:
+        paths = np.asarray(sample_trajectories(key, posts[0], query, num_samples, **basis))
+    else:
+        paths = sample_over_timing(key, posts, grid_weights, query, num_samples, **basis)
     scale, shift = np.asarray(result.scaling.scale), np.asarray(result.scaling.mean)
-    weights = np.exp(np.asarray(post.weights.log_weights))
-    sd = np.asarray(traj.sd) * scale
+    weights = component_weights[0] if len(posts) == 1 else np.ones(1)
+    sd = np.asarray(moments.sd) * scale
     return Prediction(
         phase=query,
-        mean=np.asarray(traj.mean) * scale + shift,
+        mean=np.asarray(moments.mean) * scale + shift,
         sd=sd,
         sd_obs=np.sqrt(sd**2 + noise**2),
         samples=paths * scale + shift,
         component_weights=weights / weights.sum(),
         noise_sd=noise,
+        duration=None if duration is None else (timing.estimate if estimate else float(duration)),
+        duration_interval=None if timing is None else np.asarray(timing.interval),
+        time=time,
+        time_mean=None if time is None else np.asarray(moments.time_mean) * scale + shift,
+        time_sd=None if time is None else np.asarray(moments.time_sd) * scale,
+        timing=timing,
     )
 
 

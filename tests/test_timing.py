@@ -1,0 +1,166 @@
+"""Prediction with unknown timing and via-points (lmpromp_ppl.predict.timing)."""
+
+import numpy as np
+import jax.numpy as jnp
+import pytest
+
+from lmpromp_ppl.data.core import Scaling
+from lmpromp_ppl.data.registry import load_dataset
+from lmpromp_ppl.data.synthetic import GENERATOR_WIDTH
+from lmpromp_ppl.predict.conditioning import condition, condition_draws
+from lmpromp_ppl.predict.timing import (
+    ViaPoints, duration_prior, rows_at, timed_rows, timing_posterior, via_rows,
+)
+from lmpromp_ppl.predict.trajectories import trajectory_distribution
+from lmpromp_ppl.errors import DataError
+
+D, J = 2, 6
+
+
+def _params(seed=0):
+    rng = np.random.default_rng(seed)
+    return {"b": jnp.asarray(rng.standard_normal(D * J)), "M": jnp.asarray(rng.standard_normal((D * J, 2))),
+            "alpha": jnp.asarray(20.0)}
+
+
+def test_via_points_and_observation_equal_joint_gaussian_conditioning():
+    params = _params()
+    scaling = Scaling.identity(D)
+    t = np.linspace(0.0, 0.3, 15)
+    y = np.random.default_rng(1).standard_normal((15, D))
+    y[3, 1] = np.nan
+    obs = rows_at(timed_rows(t, y, noise_sd=0.1, scaling=scaling, timed=False), 1.0, 0.0, num_dofs=D, num_basis=J)
+    via = ViaPoints(np.array([0.6, 1.0]), np.array([[0.5, np.nan], [1.0, -1.0]]),
+                    velocity=np.array([[np.nan, 0.2], [0.0, np.nan]]), position_sd=0.05, velocity_sd=0.05)
+    vrows = rows_at(via_rows(via.at, via.position, velocity=via.velocity, position_sd=0.05, velocity_sd=0.05,
+                             scaling=scaling), 2.0, 0.0, num_dofs=D, num_basis=J)
+    got = condition("lmpromp", params, obs, 1.0, via=vrows).weights
+    # brute force: the joint Gaussian of (w, every observed row)
+    b, M, alpha = (np.asarray(params[k]) for k in ("b", "M", "alpha"))
+    cov_w = np.eye(D * J) / alpha + M @ M.T
+    psi = np.vstack([np.asarray(obs.psi), np.asarray(vrows.psi)])
+    noise = np.concatenate([np.asarray(obs.noise_var), np.asarray(vrows.noise_var)])
+    values = np.concatenate([np.asarray(obs.values), np.asarray(vrows.values)])
+    gain = cov_w @ psi.T @ np.linalg.inv(psi @ cov_w @ psi.T + np.diag(noise))
+    mean = b + gain @ (values - psi @ b)
+    cov = cov_w - gain @ psi @ cov_w
+    np.testing.assert_allclose(np.asarray(got.means[0]), mean, atol=1e-8)
+    np.testing.assert_allclose(np.asarray(got.covs[0]), cov, atol=1e-8)
+
+
+def test_noiseless_via_points_are_reproduced_for_every_model():
+    scaling = Scaling.identity(D)
+    t = np.linspace(0.0, 0.3, 40)  # more rows than weights: the observation takes the Woodbury path
+    y = np.random.default_rng(2).standard_normal((40, D)) * 0.3
+    obs = rows_at(timed_rows(t, y, noise_sd=0.1, scaling=scaling, timed=False), 1.0, 0.0, num_dofs=D, num_basis=J)
+    at, pos = np.array([0.5, 0.8, 1.0]), np.array([[0.3, -0.2], [1.0, 0.5], [-0.5, 0.0]])
+    vrows = rows_at(via_rows(at, pos, scaling=scaling), 1.0, 0.0, num_dofs=D, num_basis=J)
+    p = _params(3)
+    mixture = {"pi": jnp.array([0.3, 0.7]), "b": jnp.stack([p["b"], -p["b"]]), "M": jnp.stack([p["M"], p["M"]]),
+               "alpha": jnp.array([20.0, 10.0])}
+    promp = {"mu_w": p["b"], "Sigma_w": jnp.eye(D * J) + p["M"] @ p["M"].T}
+    draws = {k: jnp.stack([v, v * 1.1]) for k, v in p.items()}
+    for model, weights in (
+        ("lmpromp", condition("lmpromp", p, obs, 1.0, via=vrows).weights),
+        ("mixture", condition("mixture", mixture, obs, 1.0, via=vrows).weights),
+        ("promp", condition("promp", promp, obs, via=vrows).weights),
+        ("draws", condition_draws("lmpromp", draws, obs, 1.0, via=vrows).weights),
+    ):
+        traj = trajectory_distribution(weights, at, num_dofs=D, num_basis=J)
+        np.testing.assert_allclose(np.asarray(traj.mean), pos, atol=1e-6, err_msg=model)
+        assert float(np.max(np.asarray(traj.sd))) < 1e-4, model
+
+
+def test_duration_posterior_is_calibrated_under_the_true_model():
+    """With the generating parameters, the 90 % interval covers the held-out durations at the nominal rate.
+
+    80 held-out demonstrations: the coverage's binomial s.d. is 0.034, so 0.90 +- 0.1 is about 3 s.d.
+    """
+    demos = load_dataset("synthetic:latent?L=100&D=2&J=10&V=3&T=60&duration=2&spread=0.2&seed=5")
+    md = demos.metadata
+    draws = {"b": jnp.asarray(md["b"])[None], "M": jnp.asarray(md["M"])[None], "alpha": jnp.asarray([100.0])}
+    prior = duration_prior(md["durations"][:20])
+    covered, errors = [], []
+    for t, y, T in zip(demos.times[20:], demos.positions[20:], md["durations"][20:]):
+        seen = t <= T / 3
+        rows = timed_rows(t[seen], y[seen], noise_sd=1 / np.sqrt(400.0), scaling=Scaling.identity(2))
+        post = timing_posterior("lmpromp", draws, rows, prior, 1.0, num_dofs=2, num_basis=10, width=GENERATOR_WIDTH)
+        assert abs(post.weights.sum() - 1) < 1e-12
+        covered.append(post.interval[0] <= T <= post.interval[1])
+        errors.append(post.estimate / T - 1)
+    assert abs(np.mean(covered) - 0.9) <= 0.1
+    # the estimate is informative: far better than the prior's spread (20 %)
+    assert np.median(np.abs(errors)) < 0.1
+
+
+def test_timing_rows_reject_bad_input():
+    scaling = Scaling.identity(D)
+    with pytest.raises(DataError):
+        timed_rows(np.array([-1.0, 0.0]), np.zeros((2, D)), noise_sd=0.1, scaling=scaling)
+    with pytest.raises(DataError):
+        via_rows(np.array([1.5]), np.zeros((1, D)), scaling=scaling)
+    with pytest.raises(DataError):
+        via_rows(np.array([0.5]), np.full((1, D), np.nan), scaling=scaling)
+    with pytest.raises(DataError):
+        duration_prior(np.array([-1.0, 2.0]))
+
+
+def test_duration_prior_from_training_durations():
+    prior = duration_prior(np.array([2.0, 2.0, 2.0]))
+    assert prior.scale == pytest.approx(0.05) and np.exp(prior.loc) == pytest.approx(2.0)
+    logs = np.log([1.0, 2.0, 4.0])
+    prior = duration_prior(np.exp(logs))
+    assert prior.scale == pytest.approx(np.std(logs, ddof=1) * np.sqrt(1 + 1 / 3))
+
+
+@pytest.fixture(scope="module")
+def timed_fit(tmp_path_factory):
+    from lmpromp_ppl.cli import main
+
+    out = tmp_path_factory.mktemp("timed") / "fit"
+    spec = "synthetic:latent?L=12&D=2&J=6&V=2&T=40&duration=3&spread=0.1&seed=1"
+    assert main(["fit", spec, "--latent-dim", "2", "--num-basis", "6", "--out", str(out), "--quiet"]) == 0
+    return out, load_dataset(spec)
+
+
+def test_cli_predict_estimates_the_duration_and_passes_via_points(timed_fit, tmp_path, capsys):
+    from lmpromp_ppl.cli import main
+
+    fit_dir, demos = timed_fit
+    t, y = demos.times[0], demos.positions[0]
+    seen = t <= t[-1] / 3
+    np.savez(tmp_path / "obs.npz", t=t[seen], y=y[seen])
+    via_pos = np.array([[0.1, np.nan], [0.4, 0.2]])
+    np.savez(tmp_path / "via.npz", phase=np.array([0.7, 1.0]), y=via_pos)
+    code = main(["predict", str(fit_dir), "--observe", str(tmp_path / "obs.npz"), "--duration", "estimate",
+                 "--via", str(tmp_path / "via.npz"), "--samples", "3", "--out", str(tmp_path / "pred")])
+    assert code == 0
+    assert "estimated duration" in capsys.readouterr().out
+    with np.load(tmp_path / "pred" / "prediction.npz") as f:
+        lo, hi = f["duration_interval"]
+        assert f["duration_interval"].shape == (2,) and lo < float(f["duration"]) < hi
+        # the training durations are 3 s +- 10 %: the estimate lies in their range
+        assert 2.0 < float(f["duration"]) < 4.5
+        phase, mean = f["phase"], f["mean"]
+        assert f["time_mean"].shape == (f["time"].shape[0], 2)
+    # noiseless via-points are reproduced in phase (the default via sd is 0)
+    np.testing.assert_allclose(np.interp(0.7, phase, mean[:, 0]), 0.1, atol=2e-3)
+    np.testing.assert_allclose(mean[-1], via_pos[1], atol=1e-6)
+    assert (tmp_path / "pred" / "prediction.png").stat().st_size > 0
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--duration", "soon"], "--duration must be"),
+    (["--duration", "-2"], "--duration must be"),
+    (["--via", "missing.npz"], "cannot read via-point file"),
+])
+def test_cli_predict_bad_timing_input(timed_fit, tmp_path, capsys, args, message):
+    from lmpromp_ppl.cli import main
+
+    fit_dir, demos = timed_fit
+    np.savez(tmp_path / "obs.npz", t=demos.times[0][:5], y=demos.positions[0][:5])
+    args = [a if a != "missing.npz" else str(tmp_path / a) for a in args]
+    code = main(["predict", str(fit_dir), "--observe", str(tmp_path / "obs.npz"), *args, "--out", str(tmp_path / "p")])
+    assert code == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "p").exists()
