@@ -70,7 +70,7 @@ def test_loaded_fit_predicts_through_the_observations(fit_dir, tmp_path):
         (["predict", "{fit}", "--observe", "{tmp}/missing.npz", "--out", "{tmp}/p"], "no such file"),
         (["predict", "{tmp}", "--observe", "{tmp}/obs.npz", "--out", "{tmp}/p"], "not a saved fit"),
         (["predict", "{fit}", "--observe", "{tmp}/bad.npz", "--out", "{tmp}/p"], "2 DoF"),
-        (["predict", "{fit}", "--observe", "{tmp}/obs.npz", "--out", "{tmp}/p", "--duration", "0.05"], "phases must lie in"),
+        (["predict", "{fit}", "--observe", "{tmp}/obs.npz", "--out", "{tmp}/p", "--duration", "0.05"], "exceed the duration"),
         (["fit", "lasa:NoSuchShape", "--out", "{tmp}/f"], "NoSuchShape"),
         (["fit", DATASET, "--model", "promp", "--out", "{tmp}/f"], "not for promp"),
         (["fit", DATASET, "--latent-dim", "30", "--num-basis", "4", "--out", "{tmp}/f"], "latent dimension"),
