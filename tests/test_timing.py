@@ -164,3 +164,19 @@ def test_cli_predict_bad_timing_input(timed_fit, tmp_path, capsys, args, message
     assert code == 2
     assert message in capsys.readouterr().err
     assert not (tmp_path / "p").exists()
+
+
+def test_via_file_formats_agree(tmp_path):
+    from lmpromp_ppl.cli.predict import read_via
+
+    pos, vel = np.array([[0.1, np.nan], [0.4, 0.2]]), np.array([[np.nan, 1.0], [0.0, np.nan]])
+    np.savez(tmp_path / "via.npz", t=np.array([0.5, 1.5]), y=pos, dy=vel)
+    rows = np.column_stack([[0.5, 1.5], pos, vel])
+    np.savetxt(tmp_path / "via.csv", rows, delimiter=",", header="t,x,y,vx,vy", comments="")
+    a, b = read_via(tmp_path / "via.npz", 2), read_via(tmp_path / "via.csv", 2)
+    assert a.timed and b.timed
+    for x, y in ((a.at, b.at), (a.position, b.position), (a.velocity, b.velocity)):
+        np.testing.assert_array_equal(x, y)
+    with pytest.raises(DataError, match="columns must be"):
+        np.savetxt(tmp_path / "bad.csv", rows[:, :4], delimiter=",", header="t,x,y,vx", comments="")
+        read_via(tmp_path / "bad.csv", 2)

@@ -15,6 +15,27 @@ from lmpromp_ppl.errors import DataError, LmprompError
 __all__ = ["predict_command", "read_observation", "read_via"]
 
 
+def _read_columns(path: Path, what: str) -> dict[str, np.ndarray]:
+    """The named arrays of a ``.npz`` (read without pickle) or the columns of a ``.csv`` with a header, in order."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"cannot read {what} file {path}: no such file")
+    if path.suffix not in (".npz", ".csv"):
+        raise DataError(f"{what} file {path} must end in .npz or .csv")
+    try:
+        if path.suffix == ".npz":
+            with np.load(path, allow_pickle=False) as f:
+                return {name: np.asarray(f[name], dtype=float) for name in f.files}
+        table = np.atleast_1d(np.genfromtxt(path, delimiter=",", names=True, dtype=float))
+    except (OSError, ValueError) as exc:
+        raise DataError(f"cannot read {what} file {path}: {exc}") from None
+    return {name: np.asarray(table[name], dtype=float) for name in table.dtype.names or ()}
+
+
+def _stack(columns: list[np.ndarray], size: int) -> np.ndarray:
+    return np.stack(columns, axis=-1) if columns else np.empty((size, 0))
+
+
 def read_observation(path: Path, num_dofs: int) -> tuple[np.ndarray, np.ndarray]:
     """Read one demonstration ``t`` (T,), ``y`` (T, D) from ``.npz`` or ``.csv``.
 
@@ -22,29 +43,17 @@ def read_observation(path: Path, num_dofs: int) -> tuple[np.ndarray, np.ndarray]
     ``.csv`` has a header with ``t`` then one column per DoF.
     """
     path = Path(path)
-    if not path.is_file():
-        raise DataError(f"cannot read observation file {path}: no such file")
+    columns = _read_columns(path, "observation")
     if path.suffix == ".npz":
-        try:
-            with np.load(path, allow_pickle=False) as f:
-                if "t" not in f or "y" not in f:
-                    raise DataError(f"{path}: needs arrays 't' (T,) and 'y' (T, D), found {sorted(f.files)}")
-                t, y = np.asarray(f["t"], dtype=float), np.asarray(f["y"], dtype=float)
-        except (OSError, ValueError) as exc:
-            raise DataError(f"cannot read observation file {path}: {exc}") from None
-    elif path.suffix == ".csv":
-        try:
-            table = np.genfromtxt(path, delimiter=",", names=True, dtype=float)
-        except (OSError, ValueError) as exc:
-            raise DataError(f"cannot read observation file {path}: {exc}") from None
-        names = table.dtype.names or ()
-        if not names or names[0] != "t":
-            raise DataError(f"{path}: the first column must be 't', found {list(names)}")
-        table = np.atleast_1d(table)
-        t = np.asarray(table["t"], dtype=float)
-        y = np.stack([np.asarray(table[n], dtype=float) for n in names[1:]], axis=-1) if len(names) > 1 else np.empty((t.size, 0))
+        if "t" not in columns or "y" not in columns:
+            raise DataError(f"{path}: needs arrays 't' (T,) and 'y' (T, D), found {sorted(columns)}")
+        t, y = columns["t"], columns["y"]
     else:
-        raise DataError(f"observation file {path} must end in .npz or .csv")
+        names = list(columns)
+        if not names or names[0] != "t":
+            raise DataError(f"{path}: the first column must be 't', found {names}")
+        t = columns["t"]
+        y = _stack([columns[n] for n in names[1:]], t.size)
     if y.ndim == 1 and num_dofs == 1:
         y = y[:, None]
     if t.ndim != 1 or y.ndim != 2 or y.shape[0] != t.shape[0]:
@@ -71,40 +80,27 @@ def _parse_duration(text: str | None):
 
 
 def read_via(path: Path, num_dofs: int):
-    """Read via-points (``--via``): see the option's help; the position sd defaults to 0 (pass exactly)."""
+    """Read via-points (``--via``): see the option's help; the sd defaults to 0 (pass exactly)."""
     from lmpromp_ppl.predict.timing import ViaPoints
 
     path = Path(path)
-    if not path.is_file():
-        raise DataError(f"cannot read via-point file {path}: no such file")
+    columns = _read_columns(path, "via-point")
     sd = 0.0
     if path.suffix == ".npz":
-        try:
-            with np.load(path, allow_pickle=False) as f:
-                keys = set(f.files)
-                where = "phase" if "phase" in keys else "t" if "t" in keys else None
-                if where is None or "y" not in keys:
-                    raise DataError(f"{path}: needs 'phase' (V,) or 't' (V,), and 'y' (V, D); found {sorted(keys)}")
-                at, pos = np.asarray(f[where], dtype=float), np.asarray(f["y"], dtype=float)
-                vel = np.asarray(f["dy"], dtype=float) if "dy" in keys else None
-                sd = np.asarray(f["sd"], dtype=float) if "sd" in keys else 0.0
-        except (OSError, ValueError) as exc:
-            raise DataError(f"cannot read via-point file {path}: {exc}") from None
-    elif path.suffix == ".csv":
-        try:
-            table = np.atleast_1d(np.genfromtxt(path, delimiter=",", names=True, dtype=float))
-        except (OSError, ValueError) as exc:
-            raise DataError(f"cannot read via-point file {path}: {exc}") from None
-        names = table.dtype.names or ()
+        where = "phase" if "phase" in columns else "t" if "t" in columns else None
+        if where is None or "y" not in columns:
+            raise DataError(f"{path}: needs 'phase' (V,) or 't' (V,), and 'y' (V, D); found {sorted(columns)}")
+        at, pos, vel = columns[where], columns["y"], columns.get("dy")
+        sd = columns.get("sd", 0.0)
+    else:
+        names = list(columns)
         if not names or names[0] not in ("phase", "t") or len(names) not in (1 + num_dofs, 1 + 2 * num_dofs):
             raise DataError(f"{path}: columns must be phase or t, then {num_dofs} positions and optionally "
-                            f"{num_dofs} velocities; found {list(names)}")
+                            f"{num_dofs} velocities; found {names}")
         where = names[0]
-        at = np.asarray(table[where], dtype=float)
-        cols = np.stack([np.asarray(table[n], dtype=float) for n in names[1:]], axis=-1)
-        pos, vel = cols[:, :num_dofs], (cols[:, num_dofs:] if cols.shape[1] > num_dofs else None)
-    else:
-        raise DataError(f"via-point file {path} must end in .npz or .csv")
+        at = columns[where]
+        pos = _stack([columns[n] for n in names[1:1 + num_dofs]], at.size)
+        vel = _stack([columns[n] for n in names[1 + num_dofs:]], at.size) if len(names) > 1 + num_dofs else None
     if pos.ndim == 1 and num_dofs == 1:
         pos = pos[:, None]
         vel = None if vel is None else vel.reshape(-1, 1)
