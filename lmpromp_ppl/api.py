@@ -39,14 +39,20 @@ def adjusted_rand_index(labels, resp) -> float:
 
 
 def observed_arrays(demos: Demonstrations) -> dict[str, np.ndarray]:
-    """``t`` (L, T) and ``y`` (L, T, D) in data units, NaN-padded to the longest demonstration."""
+    """``t`` (L, T) and ``y`` (L, T, D) in data units, NaN-padded to the longest demonstration;
+    ``aligned_phase`` (L, T) too when the demonstrations' phases were aligned (``demos.warp``)."""
     size = int(demos.lengths.max())
     t = np.full((demos.num_demos, size), np.nan)
     y = np.full((demos.num_demos, size, demos.num_dofs), np.nan)
     for i, (ti, yi) in enumerate(zip(demos.times, demos.positions)):
         t[i, : ti.shape[0]] = ti
         y[i, : ti.shape[0]] = yi
-    return {"t": t, "y": y}
+    out = {"t": t, "y": y}
+    if demos.warp is not None:
+        out["aligned_phase"] = np.full((demos.num_demos, size), np.nan)
+        for i, z in enumerate(demos.warp):
+            out["aligned_phase"][i, : z.shape[0]] = z
+    return out
 
 
 def resolve_num_basis(num_basis: int | str | None, model: str) -> int | str:
@@ -69,6 +75,7 @@ def fit(
     width: float = DEFAULT_WIDTH,
     seed: int = 0,
     standardise: bool = True,
+    align: str | None = None,
     progress: bool = False,
     **options,
 ) -> FitResult:
@@ -94,6 +101,9 @@ def fit(
         the movement types; :data:`~lmpromp_ppl.basis.DEFAULT_NUM_BASIS` otherwise
     width : basis width (:data:`lmpromp_ppl.basis.DEFAULT_WIDTH`)
     seed : seeds every random choice of the engine
+    align : ``"dtw"``: align the demonstrations' phases before fitting
+        (:func:`lmpromp_ppl.data.align.align_phases`; stored as ``observed_data.aligned_phase``);
+        default: each demonstration's time mapped linearly to [0, 1]
     options : passed to the engine (e.g. ``tol``, ``max_iter``, ``num_restarts`` for
         CAVI, and for the mixture ``search`` (``"split_merge"``, the default, or ``"none"``)
         and ``max_moves``; ``num_chains``, ``num_warmup``, ``num_samples`` for NUTS; ``num_steps``,
@@ -106,15 +116,15 @@ def fit(
     if hyper is None:
         hyper = preset("default" if engine in ("cavi", "cavi_lr") else "proper")
     if isinstance(data, PreparedDataset):
-        if num_basis is not None or width != DEFAULT_WIDTH or not standardise:
-            raise LmprompError("a PreparedDataset fixes num_basis, width and the scaling; do not pass them")
+        if num_basis is not None or width != DEFAULT_WIDTH or not standardise or align is not None:
+            raise LmprompError("a PreparedDataset fixes num_basis, width, the scaling and the phases; do not pass them")
         prepared = data
     else:
         num_basis = resolve_num_basis(num_basis, model)
         if num_basis == "auto":
             return _fit_auto_basis(data, model, engine, hyper, width=width, seed=seed, standardise=standardise,
-                                   progress=progress, options=options)
-        prepared = prepare_dataset(data, num_basis, standardise=standardise, width=width)
+                                   align=align, progress=progress, options=options)
+        prepared = prepare_dataset(data, num_basis, standardise=standardise, width=width, align=align)
     return _fit_prepared(prepared, model, engine, hyper, seed=seed, progress=progress, options=options)
 
 
@@ -210,9 +220,9 @@ def select_num_basis(
             "result": best[0], "prepared": best[1]}
 
 
-def _fit_auto_basis(data, model, engine, hyper, *, width, seed, standardise, progress, options) -> FitResult:
+def _fit_auto_basis(data, model, engine, hyper, *, width, seed, standardise, align, progress, options) -> FitResult:
     """``fit(..., num_basis="auto")``: :func:`select_num_basis`, then the requested fit at the chosen J."""
-    prepared = prepare_dataset(data, min(AUTO_NUM_BASIS), standardise=standardise, width=width)
+    prepared = prepare_dataset(data, min(AUTO_NUM_BASIS), standardise=standardise, width=width, align=align)
     if model == "mixture" and prepared.raw.num_demos < hyper.num_components:
         raise LmprompError(f"fewer demonstrations (L={prepared.raw.num_demos}) than mixture components "
                            f"(K={hyper.num_components})")

@@ -12,7 +12,8 @@ A :class:`FitResult` holds what an engine produced on one model and dataset.
 * ``point_estimate``: posterior means used for plug-in prediction;
 * ``observed_data``: the demonstrations in data units, ``t`` (``demo``,
   ``sample``) and ``y`` (``demo``, ``sample``, ``dof``), NaN-padded when
-  lengths differ;
+  lengths differ, and ``aligned_phase`` (``demo``, ``sample``) when the
+  phases were aligned before fitting (``fit(..., align="dtw")``);
 * ``posterior_predictive`` (on request): replicated demonstrations ``y``
   (``chain``, ``draw``, ``demo``, ``sample``, ``dof``) drawn from
   :math:`N(\Psi_i w_i, \beta^{-1} I)` for each posterior draw of ``w``.
@@ -91,6 +92,7 @@ SITE_DIMS: dict[str, tuple[str, ...]] = {
     "pred_sd": ("phase", "dof"),
     "t": ("demo", "sample"),
     "y": ("demo", "sample", "dof"),
+    "aligned_phase": ("demo", "sample"),
 }
 
 
@@ -301,6 +303,21 @@ class FitResult:
     def elbo(self) -> float | None:
         return self.summary.get("elbo")
 
+    def training_phases(self) -> list[np.ndarray]:
+        """Each training demonstration's phases: ``observed_data.aligned_phase`` when the fit
+        aligned them, else its time mapped linearly to [0, 1] (padding dropped)."""
+        if not self.observed:
+            raise LmprompError("this result holds no observed data")
+        t = np.asarray(self.observed["t"], dtype=float)
+        aligned = self.observed.get("aligned_phase")
+        out = []
+        for i in range(t.shape[0]):
+            valid = np.isfinite(t[i])
+            ti = t[i, valid]
+            out.append(np.asarray(aligned, dtype=float)[i, valid] if aligned is not None
+                       else (ti - ti[0]) / (ti[-1] - ti[0]))
+        return out
+
     def posterior_predictive(self, key=None, num_draws: int | None = None, draws: dict | None = None) -> np.ndarray:
         r"""Replicated demonstrations ``(chain, draw, demo, sample, dof)`` in data units.
 
@@ -325,10 +342,8 @@ class FitResult:
         key = seed_key(self.seed, POSTERIOR_PREDICTIVE) if key is None else key
         noise = np.asarray(jax.random.normal(key, w.shape[:2] + y.shape))
         out = np.full(w.shape[:2] + y.shape, np.nan)
-        for i in range(t.shape[0]):
+        for i, phase in enumerate(self.training_phases()):
             valid = np.isfinite(t[i])
-            ti = t[i, valid]
-            phase = (ti - ti[0]) / (ti[-1] - ti[0])
             psi = np.asarray(design_matrix(phase, self.num_dofs, self.num_basis, self.width))
             mean = np.einsum("sd,cnd->cns", psi, w[:, :, i]).reshape(w.shape[:2] + (valid.sum(), self.num_dofs))
             rep = mean + noise[:, :, i, valid] / np.sqrt(beta)  # beta: scalar or (chain, draw, 1, 1)

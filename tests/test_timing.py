@@ -180,3 +180,100 @@ def test_via_file_formats_agree(tmp_path):
     with pytest.raises(DataError, match="columns must be"):
         np.savetxt(tmp_path / "bad.csv", rows[:, :4], delimiter=",", header="t,x,y,vx", comments="")
         read_via(tmp_path / "bad.csv", 2)
+
+
+def test_cli_predict_estimates_the_start_of_a_late_observation(timed_fit, tmp_path, capsys):
+    from lmpromp_ppl.cli import main
+
+    fit_dir, demos = timed_fit
+    t, y = demos.times[0], demos.positions[0]
+    z = (t - t[0]) / (t[-1] - t[0])
+    seen = (z >= 0.2) & (z <= 0.55)  # the observation begins a fifth into the movement
+    np.savez(tmp_path / "obs.npz", t=t[seen] - t[seen][0], y=y[seen])
+    code = main(["predict", str(fit_dir), "--observe", str(tmp_path / "obs.npz"), "--duration", "estimate",
+                 "--max-start", "0.4", "--samples", "2", "--out", str(tmp_path / "pred")])
+    assert code == 0
+    assert "estimated start phase" in capsys.readouterr().out
+    with np.load(tmp_path / "pred" / "prediction.npz") as f:
+        # the start grid spacing is 0.02; the observation's first sample lies at phase 0.205
+        assert abs(float(f["start_phase"]) - z[seen][0]) < 0.06
+        assert abs(float(f["duration"]) / (t[-1] - t[0]) - 1) < 0.15
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--max-start", "0.3"], "--max-start needs --duration estimate"),
+    (["--duration", "estimate", "--max-start", "1.5"], "--max-start must lie in [0, 1)"),
+])
+def test_cli_predict_bad_start_input(timed_fit, tmp_path, capsys, args, message):
+    from lmpromp_ppl.cli import main
+
+    fit_dir, demos = timed_fit
+    np.savez(tmp_path / "obs.npz", t=demos.times[0][:5], y=demos.positions[0][:5])
+    code = main(["predict", str(fit_dir), "--observe", str(tmp_path / "obs.npz"), *args, "--out", str(tmp_path / "p")])
+    assert code == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "p").exists()
+
+
+def test_residual_rule_keeps_every_sample_of_white_residuals_and_thins_smooth_ones():
+    from lmpromp_ppl.api import fit
+    from lmpromp_ppl.predict.from_fit import evidence_samples, residual_correlation
+
+    # the generator's basis (J = 6) is the fit's: white residuals, about one sample per effective sample
+    white = fit("synthetic:latent?L=12&D=2&J=6&V=2&T=60&seed=2", num_basis=6)
+    assert residual_correlation(white) * 59 < 1.5
+    prior = duration_prior(np.full(12, 1.0))
+    time = np.linspace(0.0, 1.0 / 3.0, 20)
+    assert evidence_samples(time, "residual", prior, 6, residual_correlation(white)).size == 20
+    # a basis coarser than the movement (J = 3 for a J = 12 generator): the misfit is smooth
+    smooth = fit("synthetic:latent?L=12&D=2&J=12&V=2&T=60&seed=2", num_basis=3)
+    length = residual_correlation(smooth)
+    assert length * 59 > 3.0
+    kept = evidence_samples(time, "residual", prior, 3, length)
+    assert kept.size == int(np.ceil(time.max() / length)) + 1 < 20
+    # without per-demonstration weights the rule falls back to two samples per basis spacing
+    assert evidence_samples(time, "residual", prior, 6, None).size == int(np.ceil(2 * 5 / 3.0)) + 1
+
+
+def test_cli_timing_report(tmp_path, capsys):
+    import json
+
+    from lmpromp_ppl.cli import main
+
+    spec = "synthetic:latent?L=5&D=1&J=5&V=1&T=40&duration=2&spread=0.2&seed=0"
+    assert main(["timing", "--datasets", spec, "--max-folds", "2", "--out", str(tmp_path / "t"), "--quiet"]) == 0
+    assert capsys.readouterr().out == ""
+    table = (tmp_path / "t" / "timing.md").read_text()
+    assert "## Aligned training phases" in table and table.count(f"| {spec} |") == 2
+    row = json.loads((tmp_path / "t" / "timing.json").read_text())["rows"][0]
+    assert row["folds"] == 5 == len(row["per_fold"])  # a synthetic set holds out every demonstration
+    for fold in row["per_fold"]:
+        lo, hi = fold["interval"]
+        assert lo < fold["estimate"] < hi and fold["covered"] == (lo <= fold["duration"] <= hi)
+        assert fold["rmse_true"] > 0 and fold["population_sd_aligned"] > 0
+    assert row["ratio_estimated"] == pytest.approx(row["rmse_estimated"] / row["rmse_true"])
+    assert main(["timing", "--datasets", "lasa:Nope", "--out", str(tmp_path / "bad")]) == 2
+    assert not (tmp_path / "bad").exists()
+
+
+def test_timing_nodes_keep_the_posterior_mean_and_spread():
+    from lmpromp_ppl.predict.timing import timing_nodes
+
+    grid = np.linspace(np.log(1.0), np.log(4.0), 241)
+    weights = np.exp(-0.5 * ((grid - np.log(2.0)) / 0.1) ** 2)
+    weights /= weights.sum()
+    mean, sd = np.sum(weights * grid), np.sqrt(np.sum(weights * (grid - np.sum(weights * grid)) ** 2))
+    nodes, node_weights = timing_nodes(weights, 16)
+    assert node_weights.sum() == pytest.approx(1.0) and np.all(np.diff(nodes) > 0)
+    node_mean = np.sum(node_weights * grid[nodes])
+    node_sd = np.sqrt(np.sum(node_weights * (grid[nodes] - node_mean) ** 2))
+    assert abs(node_mean - mean) < 0.01 * sd
+    assert node_sd == pytest.approx(sd, rel=0.05)
+    # the heaviest 16 grid points would keep only the middle of the posterior
+    top = np.argsort(weights)[::-1][:16]
+    top_sd = np.sqrt(np.sum(weights[top] * (grid[top] - mean) ** 2) / weights[top].sum())
+    assert top_sd < 0.5 * sd
+    # a point mass stays one node
+    point = np.zeros(241)
+    point[100] = 1.0
+    assert timing_nodes(point, 16)[0].tolist() == [100]

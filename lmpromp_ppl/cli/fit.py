@@ -80,6 +80,7 @@ def fit_command(
              f"Default: auto for the mixture, {DEFAULT_NUM_BASIS} otherwise.",
     ),
     width: float = typer.Option(DEFAULT_WIDTH, "--width", callback=positive, help="Basis width (Gaussian variance in squared centre spacings; the thesis uses 2)."),
+    align: Optional[str] = typer.Option(None, "--align", help="Align the demonstrations' phases before fitting: dtw (dynamic time warping to the medoid demonstration; stored with the fit). Default: time mapped linearly to [0, 1]."),
     preset_name: Optional[str] = typer.Option(None, "--preset", help="Hyperparameter preset: default, thesis or proper (default: default for CAVI, proper otherwise)."),
     beta: Optional[float] = typer.Option(None, callback=positive, help="Fix the observation precision beta (standardised units)."),
     learn_beta: Optional[bool] = typer.Option(None, "--learn-beta/--fixed-beta", help="Infer beta under its Gamma prior (the default presets do)."),
@@ -102,7 +103,10 @@ def fit_command(
     Prints one result line; a fit that stopped at its iteration limit says so in it.
     """
     from lmpromp_ppl.api import fit
+    from lmpromp_ppl.data.align import ALIGN_METHODS
 
+    if align is not None and align not in ALIGN_METHODS:
+        raise typer.BadParameter(f"choose from {', '.join(ALIGN_METHODS)}", param_hint="--align")
     hyper = hyper_from_options(preset_name or ("default" if engine in ("cavi", "cavi_lr") else "proper"), latent_dim, components, beta, learn_beta)
     options = {
         "max_iter": max_iter, "tol": tol, "num_restarts": restarts, "accelerate": accelerate,
@@ -113,7 +117,7 @@ def fit_command(
     out_dir = claim_out_dir(out, force)
     with caught_convergence_warnings() as messages:
         result = fit(dataset, model=model, engine=engine, hyper=hyper, num_basis=num_basis, width=width, seed=seed,
-                     progress=not quiet, **options)
+                     align=align, progress=not quiet, **options)
     result.save(out_dir, force=True)  # draws from q keyed by the seed
     if not quiet:
         s = result.summary_dict()
@@ -122,6 +126,7 @@ def fit_command(
         note = convergence_note(result, messages)
         note = f"; {note}" if note else ""
         chosen = f", J = {result.num_basis} (by the bound)" if "num_basis_selection" in s else ""
+        chosen += f", phases aligned ({align})" if align else ""
         if "linear_response" in s:
             khat = s["linear_response"]["psis_khat"]
             resampled = "importance-resampled" if s["linear_response"]["importance_resampled"] else "not resampled"

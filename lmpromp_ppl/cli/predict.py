@@ -115,6 +115,7 @@ def predict_command(
     observe: Path = typer.Option(..., "--observe", help="Observed (partial) demonstration: .npz with t (T,), y (T, D) or .csv; NaN = unobserved."),
     out: Path = typer.Option(..., "--out", help="Output directory (prediction.npz, prediction.png)."),
     duration: Optional[str] = typer.Option(None, help="SECONDS: map times to phases as t / duration; estimate: infer the duration (times in seconds from the movement's start). Default: t are phases."),
+    max_start: float = typer.Option(0.0, "--max-start", help="With --duration estimate: the observation may have begun after the movement, at any phase up to this one (in [0, 1); times then count from the observation's start); its start phase is estimated too. Default 0: it began with the movement."),
     via: Optional[Path] = typer.Option(None, "--via", help="Via-points: .npz with phase (V,) or t (V,) seconds, y (V, D), optional dy (V, D) and sd; or .csv with a phase or t column then D position and optionally D velocity columns; NaN = free."),
     noise_sd: Optional[float] = typer.Option(None, "--noise-sd", callback=positive, help="Observation noise s.d. in data units (default: the fit's, from its learned beta)."),
     bayesian: bool = typer.Option(True, "--bayesian/--plug-in", help="Average over posterior draws (default) or plug in the posterior mean."),
@@ -133,6 +134,10 @@ def predict_command(
     from lmpromp_ppl.results import load
 
     timing = _parse_duration(duration)
+    if not 0.0 <= max_start < 1.0:
+        raise DataError(f"--max-start must lie in [0, 1), got {max_start:g}")
+    if max_start > 0 and timing != "estimate":
+        raise DataError("--max-start needs --duration estimate")
     if not fit_dir.exists():
         raise LmprompError(f"fit directory {fit_dir} does not exist; write one with `lmpromp fit ... --out {fit_dir}`")
     if not fit_dir.is_dir():
@@ -142,7 +147,7 @@ def predict_command(
     if timing is None and (np.any(t < 0) or np.any(t > 1)):
         raise DataError("observation phases must lie in [0, 1]; pass --duration to map times to phases")
     via_points = None if via is None else read_via(via, result.num_dofs)
-    pred = predict_from_fit(result, t, y, duration=timing, via=via_points, noise_sd=noise_sd, bayesian=bayesian,
+    pred = predict_from_fit(result, t, y, duration=timing, max_start=max_start, via=via_points, noise_sd=noise_sd, bayesian=bayesian,
                             exact=exact, num_samples=samples, key=jax.random.key(seed))
     out_dir = claim_out_dir(out, force)
     extra = {}
@@ -150,6 +155,8 @@ def predict_command(
         extra = dict(time=pred.time, time_mean=pred.time_mean, time_sd=pred.time_sd)
     if timing == "estimate":
         extra.update(duration=np.asarray(pred.duration), duration_interval=np.asarray(pred.duration_interval))
+    if max_start > 0:
+        extra.update(start_phase=np.asarray(pred.timing.start_estimate))
     np.savez(out_dir / "prediction.npz", phase=pred.phase, mean=pred.mean, sd=pred.sd, sd_obs=pred.sd_obs,
              samples=pred.samples, **extra)
     fig = Figure(figsize=(4.5 * result.num_dofs, 3.2), layout="constrained")
@@ -167,16 +174,20 @@ def predict_command(
         else:  # real time: the observation, the predicted rest, the end's interval
             x, mean, sd = pred.time, pred.time_mean[:, k], pred.time_sd[:, k]
             if timing == "estimate":
-                ax.axvspan(*pred.duration_interval, color="tab:orange", alpha=0.15, label="90 % interval of the end")
+                # the end lies T (1 - z0) after the observation's start (z0 = 0 unless --max-start)
+                end = np.asarray(pred.duration_interval) * (1.0 - pred.timing.start_estimate)
+                ax.axvspan(*end, color="tab:orange", alpha=0.15, label="90 % interval of the end")
         ax.fill_between(x, mean - 1.645 * sd, mean + 1.645 * sd, color="tab:blue", alpha=0.25, label="90 % band, movement")
         ax.plot(x, mean, color="tab:blue", lw=2, label="predicted mean")
         ax.plot(t[ok], y[ok, k], "o", color="black", ms=3, label="observed")
         if via_points is not None:
-            at = via_points.at if timing is None or via_points.timed else via_points.at * pred.duration
+            start = pred.timing.start_estimate if pred.timing is not None else 0.0
+            at = via_points.at if timing is None or via_points.timed else (via_points.at - start) * pred.duration
             okv = np.isfinite(via_points.position[:, k])
             ax.plot(at[okv], via_points.position[okv, k], "D", color="tab:red", ms=6, label="via-points")
         name = result.dof_names[k] if result.dof_names else f"DoF {k}"
-        ax.set_xlabel("phase" if timing is None else "time from the movement's start")
+        ax.set_xlabel("phase" if timing is None else
+                      "time from the observation's start" if max_start > 0 else "time from the movement's start")
         ax.set_ylabel(f"{name} (data units)")
         ax.set_title(name)
     axes[0].legend(fontsize=8)
@@ -184,5 +195,7 @@ def predict_command(
     if not quiet and timing == "estimate":
         lo, hi = pred.duration_interval
         typer.echo(f"estimated duration {pred.duration:.4g} (90 % interval {lo:.4g} to {hi:.4g}), in the observation's time unit")
+        if max_start > 0:
+            typer.echo(f"estimated start phase of the observation {pred.timing.start_estimate:.3g}")
     if not quiet:
         typer.echo(f"predicted {result.model}/{result.engine} from {int(np.isfinite(y).sum())} observed values; wrote {out_dir}")

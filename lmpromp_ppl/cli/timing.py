@@ -17,7 +17,7 @@ __all__ = ["timing_command"]
 def timing_command(
     out: Path = typer.Option(..., "--out", help="Output directory (timing.md, timing.json)."),
     datasets: Optional[str] = typer.Option(None, help="Comma-separated dataset strings (default: synthetic durations, eight LASA shapes, GunPoint)."),
-    max_folds: int = typer.Option(7, "--max-folds", min=1, help="Held-out demonstrations per dataset."),
+    max_folds: int = typer.Option(7, "--max-folds", min=1, help="Held-out demonstrations per recorded dataset (a synthetic set holds out each of its demonstrations in turn)."),
     seed: int = typer.Option(0, "--seed", min=0, max=SEED_MAX, help=SEED_HELP),
     force: bool = typer.Option(False, "--force", help="Write into an existing non-empty directory."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress output."),

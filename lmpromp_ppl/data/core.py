@@ -40,6 +40,22 @@ def _as_float(name: str, a, ndim: int) -> np.ndarray:
     return arr
 
 
+def _checked_warp(warp, times) -> tuple[np.ndarray, ...]:
+    warp = tuple(warp)
+    if len(warp) != len(times):
+        raise DataError(f"{len(warp)} aligned phase arrays for {len(times)} demonstrations")
+    out = []
+    for i, (z, t) in enumerate(zip(warp, times)):
+        z = _as_float(f"aligned phases of demonstration {i}", z, 1)
+        if z.shape != t.shape:
+            raise DataError(f"demonstration {i} has {t.shape[0]} times but {z.shape[0]} aligned phases")
+        if not np.all(np.isfinite(z)) or np.any(np.diff(z) < 0) or z[0] != 0.0 or z[-1] != 1.0:
+            raise DataError(f"aligned phases of demonstration {i} must be finite and non-decreasing from 0 to 1")
+        z.setflags(write=False)
+        out.append(z)
+    return tuple(out)
+
+
 @dataclass(frozen=True, eq=False)
 class Demonstrations:
     """A set of demonstrated trajectories.
@@ -51,6 +67,9 @@ class Demonstrations:
     labels : (L,) unicode array or None (e.g. movement types)
     dof_names : tuple of D strings
     name : free-text name of the dataset
+    warp : tuple of (T_i,) phases in [0, 1], non-decreasing from 0 to 1, or None:
+        each sample's phase after aligning the demonstrations
+        (:func:`lmpromp_ppl.data.align.align_phases`); None maps time linearly
     """
 
     times: tuple[np.ndarray, ...]
@@ -59,6 +78,7 @@ class Demonstrations:
     dof_names: tuple[str, ...] = ()
     name: str = ""
     metadata: dict = field(default_factory=dict)
+    warp: tuple[np.ndarray, ...] | None = None
 
     def __post_init__(self):
         times = tuple(self.times)
@@ -111,6 +131,8 @@ class Demonstrations:
         if len(names) != num_dofs:
             raise DataError(f"{len(names)} DoF names given for {num_dofs} DoF")
         object.__setattr__(self, "dof_names", names)
+        if self.warp is not None:
+            object.__setattr__(self, "warp", _checked_warp(self.warp, t_out))
 
     # ------------------------------------------------------------------ shape
     @property
@@ -129,7 +151,10 @@ class Demonstrations:
         return self.num_demos
 
     def phases(self) -> tuple[np.ndarray, ...]:
-        """Each demonstration's time mapped to [0, 1] by its own start and duration."""
+        """Each demonstration's phases: its aligned ``warp`` when set, else its time mapped
+        to [0, 1] by its own start and duration."""
+        if self.warp is not None:
+            return self.warp
         return tuple((t - t[0]) / (t[-1] - t[0]) for t in self.times)
 
     def subset(self, index: Sequence[int] | np.ndarray) -> "Demonstrations":
@@ -142,12 +167,20 @@ class Demonstrations:
             dof_names=self.dof_names,
             name=self.name,
             metadata=dict(self.metadata),
+            warp=None if self.warp is None else tuple(self.warp[i] for i in idx),
         )
 
     def with_positions(self, positions: Sequence[np.ndarray]) -> "Demonstrations":
         """The same demonstrations with new positions (same shapes)."""
         return Demonstrations(
-            self.times, tuple(positions), self.labels, self.dof_names, self.name, dict(self.metadata)
+            self.times, tuple(positions), self.labels, self.dof_names, self.name, dict(self.metadata), self.warp
+        )
+
+    def with_warp(self, warp: Sequence[np.ndarray] | None) -> "Demonstrations":
+        """The same demonstrations with aligned phases ``warp`` (None: linear in time)."""
+        return Demonstrations(
+            self.times, self.positions, self.labels, self.dof_names, self.name, dict(self.metadata),
+            None if warp is None else tuple(warp),
         )
 
     def __repr__(self) -> str:

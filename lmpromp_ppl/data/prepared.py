@@ -77,6 +77,7 @@ def prepare_dataset(
     standardise: bool = True,
     width: float = DEFAULT_WIDTH,
     scaling: Scaling | None = None,
+    align: str | None = None,
 ) -> PreparedDataset:
     """Load (if a dataset string), standardise and build model inputs.
 
@@ -88,8 +89,13 @@ def prepare_dataset(
     width : basis width
     scaling : standardise with this scaling instead of estimating one (held-out
         demonstrations scaled as their training set)
+    align : ``"dtw"``: align the demonstrations' phases first (:func:`lmpromp_ppl.data.align.align_phases`)
     """
     spec, raw = load_demonstrations(data)
+    if align is not None:
+        from lmpromp_ppl.data.align import align_phases
+
+        raw = align_phases(raw, align)
     _check_basis(num_basis, width)
     if scaling is not None:
         scaled, scaling = standardise_demonstrations(raw, scaling)

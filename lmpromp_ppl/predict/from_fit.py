@@ -33,12 +33,14 @@ from lmpromp_ppl.predict.timing import (
     sample_over_timing,
     timed_moments,
     timed_rows,
+    timing_nodes,
     timing_posterior,
     via_rows,
 )
 from lmpromp_ppl.predict.trajectories import sample_trajectories
 
-__all__ = ["Prediction", "predict_from_fit", "population_prediction", "noise_sd_of", "training_durations", "evidence_samples"]
+__all__ = ["Prediction", "predict_from_fit", "population_prediction", "noise_sd_of", "training_durations", "evidence_samples",
+           "residual_correlation"]
 
 
 class Prediction(NamedTuple):
@@ -82,36 +84,86 @@ def training_durations(result) -> np.ndarray:
     return np.nanmax(t, axis=1) - np.nanmin(t, axis=1)
 
 
-#: The timing grid points that carry this much posterior mass enter the prediction (at most :data:`MAX_TIMINGS`).
-TIMING_MASS = 1.0 - 1e-4
-MAX_TIMINGS = 64
+#: The prediction averages over this many quantile nodes of the timing posterior (:func:`~lmpromp_ppl.predict.timing.timing_nodes`).
+TIMING_NODES = 16
 
 
-def evidence_samples(time: np.ndarray, rule: int | str | None, prior, num_basis: int) -> np.ndarray:
+def residual_correlation(result) -> float | None:
+    r"""The correlation length, in phase, of the training demonstrations' residuals about their fitted weights.
+
+    For each training demonstration i and DoF d the residual
+    :math:`r_{id}(z) = y_{id}(z) - \psi(z)^\top \mathrm E[\mathbf w_{id}]` (standardised
+    units) is a series whose integrated autocorrelation time
+    :math:`\tau = n / n_{\text{eff}}` (numpyro's effective sample size, Geyer's
+    initial monotone sequence) says how many consecutive samples carry one
+    sample's worth of information.  Returned: the median over series of
+    :math:`\max(\tau, 1) / (n - 1)`, the phase spanned by one effective sample.
+    ``None`` when the fit holds no per-demonstration weights or training data.
+    """
+    from numpyro.diagnostics import effective_sample_size
+
+    from lmpromp_ppl.basis import rbf_basis
+
+    point = result.point or {}
+    if "w" not in point or not result.observed or "t" not in result.observed or "y" not in result.observed:
+        return None
+    t, y = np.asarray(result.observed["t"], dtype=float), np.asarray(result.observed["y"], dtype=float)
+    w = np.asarray(point["w"], dtype=float)
+    D, J = result.num_dofs, result.num_basis
+    if w.shape != (t.shape[0], D * J):
+        return None
+    scale, shift = np.asarray(result.scaling.scale, dtype=float), np.asarray(result.scaling.mean, dtype=float)
+    lengths = []
+    for i, z in enumerate(result.training_phases()):
+        if z.size < 8:
+            continue
+        psi = np.asarray(rbf_basis(z, J, result.width))
+        residual = (y[i][: z.size] - shift) / scale - psi @ w[i].reshape(D, J).T
+        for d in range(D):
+            if not np.all(np.isfinite(residual[:, d])) or np.std(residual[:, d]) == 0:
+                continue
+            tau = z.size / float(effective_sample_size(residual[None, :, d]))
+            lengths.append(max(tau, 1.0) / (z.size - 1))
+    return float(np.median(lengths)) if lengths else None
+
+
+def evidence_samples(time: np.ndarray, rule: int | str | None, prior, num_basis: int,
+                     correlation: float | None = None) -> np.ndarray:
     r"""Indices of the observed samples whose likelihood weighs the timing.
 
     The model's noise is independent per sample, but a recording's departure
-    from the basis expansion is smooth: it is correlated over about one basis
-    spacing :math:`1/(J-1)` in phase, so a dense recording (LASA's 1000 samples)
-    counts the same misfit hundreds of times.  Its likelihood then prefers the
-    duration under which *more* basis functions span the observed segment
-    (a shorter one, which fits the segment's detail better) with a spuriously
-    narrow interval.  ``"basis"`` keeps two samples per basis spacing: evenly
-    spaced in time, :math:`\lceil 2 (J - 1)\, t_{\max} / T_{	ext{prior}} 
-ceil + 1`
-    of them, with :math:`T_{	ext{prior}}` the prior median; docs/derivation.md
-    gives the measurements.  An int keeps that many evenly spaced samples; ``None`` keeps all.
+    from the basis expansion is smooth, so a dense recording (LASA's 1000
+    samples) would count the same misfit hundreds of times: its likelihood
+    then prefers the duration under which *more* basis functions span the
+    observed segment (a shorter one, which fits the segment's detail better),
+    with a spuriously narrow interval.  The rules keep evenly spaced samples,
+    one per correlation length :math:`\ell` in phase:
+    :math:`\lceil t_{\max} / (T_{\text{prior}}\, \ell) \rceil + 1` of them, with
+    :math:`T_{\text{prior}}` the prior median.
+
+    * ``"residual"`` (default): :math:`\ell` from the training residuals
+      (:func:`residual_correlation`, passed as ``correlation``); on LASA it is
+      about 25 samples of 1000, on GunPoint 3.4 of 150, and on data that follow
+      the model (white residuals) one sample, so every sample counts.  Falls
+      back to ``"basis"`` when ``correlation`` is ``None``.
+    * ``"basis"``: :math:`\ell = 1 / (2 (J - 1))`, two samples per basis spacing.
+    * an int keeps that many samples; ``None`` keeps all.
+
+    docs/derivation.md gives the measurements.
     """
     time = np.asarray(time, dtype=float)
     if rule is None:
         return np.arange(time.size)
-    if rule == "basis":
+    if rule == "residual" and correlation is None:
+        rule = "basis"
+    if rule in ("basis", "residual"):
+        length = 1.0 / (2.0 * (num_basis - 1)) if rule == "basis" else float(correlation)
         span = float(time.max()) / math.exp(prior.loc) if time.size else 0.0
-        count = int(math.ceil(2.0 * (num_basis - 1) * span)) + 1
+        count = int(math.ceil(span / length)) + 1
     elif isinstance(rule, (int, np.integer)) and not isinstance(rule, bool) and rule >= 1:
         count = int(rule)
     else:
-        raise DataError(f"timing_points must be 'basis', a positive integer or None, got {rule!r}")
+        raise DataError(f"timing_points must be 'residual', 'basis', a positive integer or None, got {rule!r}")
     if time.size <= count:
         return np.arange(time.size)
     targets = np.linspace(time.min(), time.max(), count)
@@ -135,7 +187,7 @@ def predict_from_fit(
     *,
     duration: float | str | None = None,
     max_start: float = 0.0,
-    timing_points: int | str | None = "basis",
+    timing_points: int | str | None = "residual",
     via: ViaPoints | None = None,
     noise_sd: float | np.ndarray | None = None,
     bayesian: bool = True,
@@ -164,8 +216,9 @@ def predict_from_fit(
         averaged over it
     max_start : with ``duration="estimate"``, also estimate the phase at which
         the observation began, uniform on ``[0, max_start]`` (0: it began with the movement)
-    timing_points : the observed samples that enter the timing's likelihood: ``"basis"``
-        (default, :func:`evidence_samples`), a number of evenly spaced samples, or ``None`` (all)
+    timing_points : the observed samples that enter the timing's likelihood: ``"residual"``
+        (default: one per correlation length of the training residuals), ``"basis"`` (two per
+        basis spacing), a number of evenly spaced samples, or ``None`` (all); :func:`evidence_samples`
     via : via-points (:class:`~lmpromp_ppl.predict.timing.ViaPoints`), at phases or,
         when ``via.timed``, at seconds from the observation's start (needs a duration)
     noise_sd : observation noise s.d. in data units (scalar or per DoF);
@@ -217,14 +270,13 @@ def predict_from_fit(
     timing = None
     if estimate:
         prior = duration_prior(training_durations(result))
-        sub = evidence_samples(phase, timing_points, prior, result.num_basis)
+        correlation = residual_correlation(result) if timing_points == "residual" else None
+        sub = evidence_samples(phase, timing_points, prior, result.num_basis, correlation)
         evidence_rows = timed_rows(phase[sub], values[sub], noise_sd=noise, scaling=result.scaling, timed=True)
         timing = timing_posterior(result.model, draws, evidence_rows, prior, gamma, exact=exact, max_start=max_start,
                                   **basis)
-        order = np.argsort(timing.weights)[::-1]
-        count = min(MAX_TIMINGS, int(np.searchsorted(np.cumsum(timing.weights[order]), TIMING_MASS)) + 1)
-        chosen = order[:count]
-        durations, starts, grid_weights = timing.duration[chosen], timing.start[chosen], timing.weights[chosen]
+        chosen, grid_weights = timing_nodes(timing.weights, TIMING_NODES)
+        durations, starts = timing.duration[chosen], timing.start[chosen]
     else:
         durations, starts, grid_weights = np.array([1.0 if duration is None else float(duration)]), np.zeros(1), np.ones(1)
     posts, component_weights = [], []

@@ -77,6 +77,7 @@ __all__ = [
     "TimedMoments",
     "timed_rows",
     "via_rows",
+    "timing_nodes",
     "join_rows",
     "rows_at",
     "duration_prior",
@@ -421,6 +422,23 @@ def timed_moments(
     time_mean, time_sd = _mixture_moments(weights, jnp.stack(t_means), jnp.stack(t_sds))
     mean, sd = _mixture_moments(weights, jnp.stack(z_means), jnp.stack(z_sds))
     return TimedMoments(jnp.asarray(time), time_mean, time_sd, jnp.asarray(phase), mean, sd)
+
+
+def timing_nodes(weights: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """The grid points (indices) and weights of a ``count``-point quadrature of the timing posterior.
+
+    Systematic resampling at the midpoint quantiles :math:`(i + 1/2)/n` of the
+    grid's cumulative weights (in the grid's order), repeated points merged:
+    every point carries mass :math:`1/n` (or a multiple), so the quadrature
+    keeps the posterior's spread and tails, which keeping the heaviest points
+    would cut.  The prediction conditions on the observation once per node.
+    """
+    weights = np.asarray(weights, dtype=float)
+    cumulative = np.cumsum(weights / weights.sum())
+    targets = (np.arange(count) + 0.5) / count
+    index = np.minimum(np.searchsorted(cumulative, targets), weights.size - 1)
+    nodes, counts = np.unique(index, return_counts=True)
+    return nodes, counts / count
 
 
 def sample_over_timing(key, posteriors: list[GaussianMixture], weights: np.ndarray, phase: np.ndarray,
