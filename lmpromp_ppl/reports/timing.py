@@ -2,7 +2,7 @@ r"""Prediction with unknown timing on real and synthetic demonstrations (``lmpro
 
 For each dataset and each held-out demonstration i (leave one out, up to
 ``max_folds`` evenly spread ones of a recorded dataset, every one of a
-synthetic set, whose duration errors vary from 2 % to 50 % between
+synthetic set, whose duration errors vary from 0.2 % to 61 % between
 demonstrations so that a median over a few is noise): fit the LMProMP with the default settings (CAVI) to the other
 demonstrations, observe the first third of demonstration i *in time*
 (``t - t_0 <= T_i / 3``, seconds from its start), and predict the remaining
