@@ -52,7 +52,7 @@ real-data: install
 
 # regenerate reports/timing/: prediction with unknown timing, leave-one-out, seven folds per
 # recorded dataset and every demonstration of the synthetic one (synthetic durations, eight
-# LASA shapes, GunPoint; linear and aligned phases; about 13 minutes on 2 cores)
+# LASA shapes, GunPoint; linear and aligned phases; about 14 minutes on 2 cores)
 .PHONY: timing-report
 timing-report: install
 	$(VENV)/bin/lmpromp timing --out reports/timing --max-folds 7 --seed 0 --force

@@ -240,13 +240,17 @@ def test_cli_timing_report(tmp_path, capsys):
 
     from lmpromp_ppl.cli import main
 
-    spec = "synthetic:latent?L=5&D=1&J=5&V=1&T=40&duration=2&spread=0.2&seed=0"
+    spec = "synthetic:latent?L=4&D=1&J=5&V=1&T=30&duration=2&spread=0.2&seed=0"
     assert main(["timing", "--datasets", spec, "--max-folds", "2", "--out", str(tmp_path / "t"), "--quiet"]) == 0
     assert capsys.readouterr().out == ""
     table = (tmp_path / "t" / "timing.md").read_text()
     assert "## Aligned training phases" in table and table.count(f"| {spec} |") == 2
-    row = json.loads((tmp_path / "t" / "timing.json").read_text())["rows"][0]
-    assert row["folds"] == 5 == len(row["per_fold"])  # a synthetic set holds out every demonstration
+    rows = json.loads((tmp_path / "t" / "timing.json").read_text())["rows"]
+    # a synthetic set is fitted with the default basis and with the generator's
+    assert [r["dataset"] for r in rows] == [spec, f"{spec} (generator's basis, J = 5, width 2)"]
+    row = rows[0]
+    assert row["folds"] == 4 == len(row["per_fold"])  # a synthetic set holds out every demonstration
+    assert row["oracle_median_abs_relative_error"] == rows[1]["oracle_median_abs_relative_error"] > 0
     for fold in row["per_fold"]:
         lo, hi = fold["interval"]
         assert lo < fold["estimate"] < hi and fold["covered"] == (lo <= fold["duration"] <= hi)
