@@ -42,16 +42,16 @@ def observed_arrays(demos: Demonstrations) -> dict[str, np.ndarray]:
     """``t`` (L, T) and ``y`` (L, T, D) in data units, NaN-padded to the longest demonstration;
     ``aligned_phase`` (L, T) too when the demonstrations' phases were aligned (``demos.warp``)."""
     size = int(demos.lengths.max())
-    t = np.full((demos.num_demos, size), np.nan)
-    y = np.full((demos.num_demos, size, demos.num_dofs), np.nan)
-    for i, (ti, yi) in enumerate(zip(demos.times, demos.positions)):
-        t[i, : ti.shape[0]] = ti
-        y[i, : ti.shape[0]] = yi
-    out = {"t": t, "y": y}
+
+    def padded(arrays) -> np.ndarray:
+        out = np.full((demos.num_demos, size) + arrays[0].shape[1:], np.nan)
+        for i, a in enumerate(arrays):
+            out[i, : a.shape[0]] = a
+        return out
+
+    out = {"t": padded(demos.times), "y": padded(demos.positions)}
     if demos.warp is not None:
-        out["aligned_phase"] = np.full((demos.num_demos, size), np.nan)
-        for i, z in enumerate(demos.warp):
-            out["aligned_phase"][i, : z.shape[0]] = z
+        out["aligned_phase"] = padded(demos.warp)
     return out
 
 

@@ -66,7 +66,7 @@ from lmpromp_ppl.data.core import Scaling
 from lmpromp_ppl.errors import DataError
 from lmpromp_ppl.predict.conditioning import condition
 from lmpromp_ppl.predict.gaussian import GaussianMixture
-from lmpromp_ppl.predict.observations import POSITION, VELOCITY, Observation
+from lmpromp_ppl.predict.observations import POSITION, VELOCITY, Observation, _noise_per_dof
 from lmpromp_ppl.predict.trajectories import sample_weights, trajectory_distribution
 
 __all__ = [
@@ -182,13 +182,6 @@ def _quantile(values: np.ndarray, weights: np.ndarray, q) -> np.ndarray:
     return np.exp(np.interp(np.asarray(q, dtype=float), cdf, v))
 
 
-def _check_noise(name: str, sd, num: int) -> np.ndarray:
-    arr = np.broadcast_to(np.asarray(sd, dtype=float), (num,)) if np.ndim(sd) == 0 else np.asarray(sd, dtype=float)
-    if arr.shape != (num,) or not np.all(np.isfinite(arr)) or np.any(arr < 0):
-        raise DataError(f"{name} must be a finite non-negative scalar or have {num} entries, got {np.asarray(sd).tolist()}")
-    return arr
-
-
 def _rows(time, timed, dof, order, values, sd) -> TimedRows:
     return TimedRows(
         time=jnp.asarray(time, dtype=jnp.float64), timed=jnp.asarray(timed, dtype=bool),
@@ -214,7 +207,7 @@ def timed_rows(
         raise DataError("observation times must be finite and values finite or NaN")
     if timed and np.any(t < 0):
         raise DataError("observation times must be seconds from the movement's start (>= 0)")
-    noise = _check_noise("noise_sd", noise_sd, num_dofs)
+    noise = _noise_per_dof("noise_sd", noise_sd, num_dofs)
     mask = np.isfinite(y)
     index_t, index_k = np.nonzero(mask)
     scale, mean = np.asarray(scaling.scale, dtype=float), np.asarray(scaling.mean, dtype=float)
@@ -262,7 +255,7 @@ def via_rows(
         table = np.asarray(table, dtype=float)
         if table.shape != position.shape or np.any(np.isinf(table)):
             raise DataError(f"via-point velocities must have shape {position.shape} (NaN = free), got {table.shape}")
-        noise = _check_noise("via-point sd", sd, num_dofs)
+        noise = _noise_per_dof("via-point sd", sd, num_dofs)
         index_v, index_k = np.nonzero(np.isfinite(table))
         parts.append(_rows(
             at[index_v], np.full(index_v.size, timed), index_k, np.full(index_v.size, order),
