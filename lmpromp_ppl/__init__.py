@@ -8,7 +8,7 @@ Importing the package switches JAX to float64 (:mod:`lmpromp_ppl._config`).
 
 from lmpromp_ppl import _config  # noqa: F401  (float64, before anything else)
 from lmpromp_ppl import data
-from lmpromp_ppl.api import ENGINES, MODELS, fit, select_num_basis
+from lmpromp_ppl.api import ENGINES, MODELS, calibrate_timing, fit, select_num_basis
 from lmpromp_ppl.data.prepared import PreparedDataset, prepare_dataset
 from lmpromp_ppl.models.hyper import DEFAULT, PROPER, THESIS, Hyperparameters, preset
 from lmpromp_ppl.results import FitResult, load
@@ -22,6 +22,7 @@ __all__ = [
     "prepare_dataset",
     "PreparedDataset",
     "select_num_basis",
+    "calibrate_timing",
     "load",
     "FitResult",
     "Hyperparameters",

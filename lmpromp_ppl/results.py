@@ -55,7 +55,7 @@ import numpy as np
 import xarray as xr
 
 from lmpromp_ppl.basis import DEFAULT_WIDTH
-from lmpromp_ppl.data.core import Scaling
+from lmpromp_ppl.data.core import Demonstrations, Scaling
 from lmpromp_ppl.quantities import derived_quantities
 from lmpromp_ppl.errors import LmprompError
 from lmpromp_ppl.models.hyper import Hyperparameters
@@ -317,6 +317,22 @@ class FitResult:
             out.append(np.asarray(aligned, dtype=float)[i, valid] if aligned is not None
                        else (ti - ti[0]) / (ti[-1] - ti[0]))
         return out
+
+    def training_demonstrations(self) -> Demonstrations:
+        """The demonstrations the fit saw, from ``observed_data`` (padding dropped; aligned phases kept as ``warp``)."""
+        if not self.observed or "t" not in self.observed:
+            raise LmprompError("this result holds no observed data")
+        t = np.asarray(self.observed["t"], dtype=float)
+        y = np.asarray(self.observed["y"], dtype=float)
+        valid = [np.isfinite(row) for row in t]
+        aligned = self.observed.get("aligned_phase")
+        return Demonstrations(
+            times=tuple(t[i, v] for i, v in enumerate(valid)),
+            positions=tuple(y[i, v] for i, v in enumerate(valid)),
+            dof_names=tuple(self.dof_names),
+            name=self.dataset,
+            warp=None if aligned is None else tuple(np.asarray(aligned, dtype=float)[i, v] for i, v in enumerate(valid)),
+        )
 
     def posterior_predictive(self, key=None, num_draws: int | None = None, draws: dict | None = None) -> np.ndarray:
         r"""Replicated demonstrations ``(chain, draw, demo, sample, dof)`` in data units.

@@ -72,6 +72,12 @@ def test_aligned_fit_stores_its_phases_and_sharpens_the_movement_distribution(tm
     aligned.save(tmp_path / "fit")
     again = load(tmp_path / "fit")
     np.testing.assert_array_equal(again.training_phases()[4], aligned.training_phases()[4])
+    back = again.training_demonstrations()  # what calibrate_timing refits on
+    assert back.num_demos == demos.num_demos and back.dof_names == demos.dof_names
+    for a, b, z, g in zip(back.times, demos.times, back.warp, align_phases(demos).phases()):
+        np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(z, g)
+    assert linear.training_demonstrations().warp is None
     # the warps blur the linear-phase distribution; aligned, only the offsets of 0.05 remain
     assert np.mean(population_prediction(aligned).sd) < 0.6 * np.mean(population_prediction(linear).sd)
     assert again.posterior_predictive(num_draws=2).shape[2:] == (9, 150, 2)

@@ -9,7 +9,7 @@ from lmpromp_ppl.data.registry import load_dataset
 from lmpromp_ppl.data.synthetic import GENERATOR_WIDTH
 from lmpromp_ppl.predict.conditioning import condition, condition_draws
 from lmpromp_ppl.predict.timing import (
-    ViaPoints, duration_prior, rows_at, timed_rows, timing_posterior, via_rows,
+    DurationPrior, ViaPoints, duration_prior, rows_at, timed_rows, timing_posterior, via_rows,
 )
 from lmpromp_ppl.predict.trajectories import trajectory_distribution
 from lmpromp_ppl.errors import DataError
@@ -135,8 +135,10 @@ def test_cli_predict_estimates_the_duration_and_passes_via_points(timed_fit, tmp
     code = main(["predict", str(fit_dir), "--observe", str(tmp_path / "obs.npz"), "--duration", "estimate",
                  "--via", str(tmp_path / "via.npz"), "--samples", "3", "--out", str(tmp_path / "pred")])
     assert code == 0
-    assert "estimated duration" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "estimated duration" in printed and "power of the timing's likelihood" in printed
     with np.load(tmp_path / "pred" / "prediction.npz") as f:
+        assert 0.0 <= float(f["timing_power"]) <= 1.0  # calibrated by default
         lo, hi = f["duration_interval"]
         assert f["duration_interval"].shape == (2,) and lo < float(f["duration"]) < hi
         # the training durations are 3 s +- 10 %: the estimate lies in their range
@@ -202,6 +204,9 @@ def test_cli_predict_estimates_the_start_of_a_late_observation(timed_fit, tmp_pa
 
 @pytest.mark.parametrize("args, message", [
     (["--max-start", "0.3"], "--max-start needs --duration estimate"),
+    (["--timing-power", "0.5"], "--timing-power needs --duration estimate"),
+    (["--duration", "estimate", "--timing-power", "2"], "--timing-power must lie in [0, 1]"),
+    (["--duration", "estimate", "--timing-power", "often"], "--timing-power must be 'calibrate' or a number"),
     (["--duration", "estimate", "--max-start", "1.5"], "--max-start must lie in [0, 1)"),
 ])
 def test_cli_predict_bad_start_input(timed_fit, tmp_path, capsys, args, message):
@@ -244,7 +249,8 @@ def test_cli_timing_report(tmp_path, capsys):
     assert main(["timing", "--datasets", spec, "--max-folds", "2", "--out", str(tmp_path / "t"), "--quiet"]) == 0
     assert capsys.readouterr().out == ""
     table = (tmp_path / "t" / "timing.md").read_text()
-    assert "## Aligned training phases" in table and table.count(f"| {spec} |") == 2
+    assert "## Aligned training phases" in table and "## Calibrated timing likelihood" in table
+    assert table.count(f"| {spec} |") == 3
     rows = json.loads((tmp_path / "t" / "timing.json").read_text())["rows"]
     # a synthetic set is fitted with the default basis and with the generator's
     assert [r["dataset"] for r in rows] == [spec, f"{spec} (generator's basis, J = 5, width 2)"]
@@ -255,6 +261,7 @@ def test_cli_timing_report(tmp_path, capsys):
         lo, hi = fold["interval"]
         assert lo < fold["estimate"] < hi and fold["covered"] == (lo <= fold["duration"] <= hi)
         assert fold["rmse_true"] > 0 and fold["population_sd_aligned"] > 0
+        assert 0.0 <= fold["calibration_power"] <= 1.0 and fold["calibrated_estimate"] > 0
     assert row["ratio_estimated"] == pytest.approx(row["rmse_estimated"] / row["rmse_true"])
     assert main(["timing", "--datasets", "lasa:Nope", "--out", str(tmp_path / "bad")]) == 2
     assert not (tmp_path / "bad").exists()
@@ -281,3 +288,97 @@ def test_timing_nodes_keep_the_posterior_mean_and_spread():
     point = np.zeros(241)
     point[100] = 1.0
     assert timing_nodes(point, 16)[0].tolist() == [100]
+
+
+def test_tempered_log_score_is_the_tempered_posterior_density():
+    """A Gaussian likelihood in log T and the log-normal prior: the tempered posterior is Gaussian in closed form."""
+    from lmpromp_ppl.predict.timing import TIMING_POWERS, TimingCurve, tempered_log_score
+
+    prior = DurationPrior(0.5, 0.2)
+    grid = np.linspace(prior.loc - 6 * prior.scale, prior.loc + 6 * prior.scale, 4001)
+    centre, width = 0.62, 0.03  # the likelihood: log T ~ N(0.62, 0.03^2), a sharp misleading peak
+    curve = TimingCurve(grid, prior.log_density(grid), -0.5 * ((grid - centre) / width) ** 2 + 7.0)
+    truth = 0.45
+    scores = tempered_log_score(curve, truth)
+    precision = 1 / prior.scale**2 + TIMING_POWERS / width**2
+    mean = (prior.loc / prior.scale**2 + TIMING_POWERS * centre / width**2) / precision
+    exact = 0.5 * np.log(precision / (2 * np.pi)) - 0.5 * precision * (truth - mean) ** 2
+    # linear interpolation of a log density of curvature -precision errs by at most h^2 / 8 * precision
+    step = grid[1] - grid[0]
+    np.testing.assert_allclose(scores, exact, atol=step**2 / 8 * precision.max() + 1e-6)
+    assert scores[0] == pytest.approx(float(prior.log_density(truth)), abs=1e-4)  # power 0: the prior
+    # a duration off the grid scores the floor
+    assert np.all(tempered_log_score(curve, grid[-1] + 1.0) == np.log(1e-300))
+
+
+def _warped_demos(rng, count, warp):
+    """A fixed shape whose phase runs as (t / T)^a, log a ~ N(0, warp^2), T ~ 2 s +- 15 %, independent."""
+    from lmpromp_ppl.data.core import Demonstrations
+
+    times, values = [], []
+    for _ in range(count):
+        T, a = 2.0 * np.exp(0.15 * rng.standard_normal()), np.exp(warp * rng.standard_normal())
+        t = np.linspace(0.0, T, 60)
+        z = (t / T) ** a
+        times.append(t)
+        values.append((np.sin(2 * np.pi * z) + 0.5 * z + 0.01 * rng.standard_normal(60))[:, None])
+    return Demonstrations(tuple(times), tuple(values))
+
+
+@pytest.mark.parametrize("warp", [0.35, 0.0])
+def test_calibrated_power_tempers_a_misleading_timing_likelihood(warp):
+    """Speed profiles that vary independently of the duration make the linear-phase likelihood misleading.
+
+    With warps, the first 0.6 s say little about the duration but the model's likelihood is sharp: the
+    calibrated power is small and it scores unseen demonstrations' durations far better than power 1.
+    Without warps the model is right and the power stays near 1.
+    """
+    from lmpromp_ppl.api import calibrate_timing, fit
+    from lmpromp_ppl.predict.from_fit import timing_curve_of
+    from lmpromp_ppl.predict.timing import tempered_log_score
+
+    rng = np.random.default_rng(0)
+    train, test = _warped_demos(rng, 10, warp), _warped_demos(rng, 8, warp)
+    result = fit(train, "lmpromp", "cavi", num_basis=10)
+    calibration = calibrate_timing(result, 0.6)
+    assert calibration.num_scored == 10 and calibration.num_folds == 8
+    assert calibration.power == calibration.powers[np.argmax(calibration.log_scores)]
+    unseen = np.zeros(calibration.powers.size)
+    for t, y in zip(test.times, test.positions):
+        seen = t <= 0.6
+        unseen += tempered_log_score(timing_curve_of(result, t[seen], y[seen]), float(np.log(t[-1])))
+    chosen = int(np.argmax(calibration.log_scores))
+    if warp > 0:
+        assert calibration.power < 0.2
+        assert (unseen[chosen] - unseen[-1]) / test.num_demos > 2.0  # nats per unseen demonstration
+    else:
+        assert calibration.power >= 0.5
+        assert unseen[chosen] >= unseen[-1] - 0.5 * test.num_demos
+
+
+def test_calibrate_timing_rejects_bad_input(timed_fit):
+    from lmpromp_ppl import load
+    from lmpromp_ppl.api import calibrate_timing
+    from lmpromp_ppl.errors import LmprompError
+
+    result = load(timed_fit[0])
+    for kwargs in ({"observed_time": -1.0}, {"observed_time": 1.0, "folds": 1}, {"observed_time": 1.0, "max_draws": 0}):
+        with pytest.raises(LmprompError):
+            calibrate_timing(result, **kwargs)
+    # every training demonstration is shorter than the observation: nothing scores, the power stays 1
+    long = calibrate_timing(result, 100.0)
+    assert long.num_scored == 0 and long.power == 1.0
+
+
+def test_training_demonstrations_drop_the_padding_of_unequal_lengths():
+    from lmpromp_ppl.api import fit
+    from lmpromp_ppl.data.core import Demonstrations
+
+    rng = np.random.default_rng(3)
+    times = [np.linspace(0.0, 1.0 + 0.1 * k, 20 + 5 * k) for k in range(4)]
+    values = [np.column_stack([np.sin(3 * t), np.cos(2 * t)]) + 0.01 * rng.standard_normal((t.size, 2)) for t in times]
+    back = fit(Demonstrations(times, values), num_basis=5).training_demonstrations()
+    assert [t.size for t in back.times] == [20, 25, 30, 35]
+    for a, b, u, v in zip(back.times, times, back.positions, values):
+        np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(u, v)

@@ -26,6 +26,7 @@ from lmpromp_ppl._keys import PREDICTION, seed_key
 from lmpromp_ppl.errors import DataError, LmprompError
 from lmpromp_ppl.predict.conditioning import SITES, condition, condition_draws
 from lmpromp_ppl.predict.timing import (
+    TimingCurve,
     TimingPosterior,
     ViaPoints,
     duration_prior,
@@ -33,6 +34,7 @@ from lmpromp_ppl.predict.timing import (
     sample_over_timing,
     timed_moments,
     timed_rows,
+    timing_curve,
     timing_nodes,
     timing_posterior,
     via_rows,
@@ -40,7 +42,7 @@ from lmpromp_ppl.predict.timing import (
 from lmpromp_ppl.predict.trajectories import sample_trajectories
 
 __all__ = ["Prediction", "predict_from_fit", "population_prediction", "noise_sd_of", "training_durations", "evidence_samples",
-           "residual_correlation"]
+           "residual_correlation", "timing_curve_of"]
 
 
 class Prediction(NamedTuple):
@@ -180,6 +182,27 @@ def _draw_sites(result, bayesian: bool, max_draws: int) -> dict:
     return {k: jnp.asarray(result.point[k])[None] for k in SITES[result.model]}
 
 
+def _timing_evidence(result, time: np.ndarray, values: np.ndarray, noise: np.ndarray, timing_points):
+    """The duration prior and the observed rows that weigh the timing (:func:`evidence_samples`)."""
+    prior = duration_prior(training_durations(result))
+    correlation = residual_correlation(result) if timing_points == "residual" else None
+    sub = evidence_samples(time, timing_points, prior, result.num_basis, correlation)
+    return prior, timed_rows(time[sub], values[sub], noise_sd=noise, scaling=result.scaling, timed=True)
+
+
+def timing_curve_of(result, time: np.ndarray, values: np.ndarray, *, timing_points: int | str | None = "residual",
+                    bayesian: bool = True, exact: bool = True, max_draws: int = 200) -> TimingCurve:
+    """The log likelihood of the duration of an observation that began with the movement
+    (``time``: seconds from its start, ``values`` (T, D) in data units) on one grid over the
+    prior's range, as :func:`predict_from_fit` weighs it with ``duration="estimate"``
+    (:func:`~lmpromp_ppl.predict.timing.timing_curve`)."""
+    time, values = np.asarray(time, dtype=float), np.asarray(values, dtype=float)
+    noise = np.broadcast_to(np.asarray(noise_sd_of(result), dtype=float), (result.num_dofs,))
+    prior, rows = _timing_evidence(result, time, values, noise, timing_points)
+    return timing_curve(result.model, _draw_sites(result, bayesian, max_draws), rows, prior, result.hyper.gamma,
+                        exact=exact, num_dofs=result.num_dofs, num_basis=result.num_basis, width=result.width)
+
+
 def predict_from_fit(
     result,
     phase: np.ndarray,
@@ -188,6 +211,7 @@ def predict_from_fit(
     duration: float | str | None = None,
     max_start: float = 0.0,
     timing_points: int | str | None = "residual",
+    timing_power: float = 1.0,
     via: ViaPoints | None = None,
     noise_sd: float | np.ndarray | None = None,
     bayesian: bool = True,
@@ -199,7 +223,7 @@ def predict_from_fit(
     max_draws: int = 200,
     key=None,
 ) -> Prediction:
-    """Condition ``result`` on observed positions (and via-points) and predict the whole movement.
+    r"""Condition ``result`` on observed positions (and via-points) and predict the whole movement.
 
     Parameters
     ----------
@@ -219,6 +243,10 @@ def predict_from_fit(
     timing_points : the observed samples that enter the timing's likelihood: ``"residual"``
         (default: one per correlation length of the training residuals), ``"basis"`` (two per
         basis spacing), a number of evenly spaced samples, or ``None`` (all); :func:`evidence_samples`
+    timing_power : with ``duration="estimate"``, the power :math:`\kappa \in [0, 1]` of the timing's
+        likelihood, :math:`p(\tau | \mathbf{o}) \propto p(\tau)\, p(\mathbf{o} | \tau)^\kappa`
+        (1: the model's posterior; 0: the prior); :func:`lmpromp_ppl.api.calibrate_timing` chooses it
+        by cross-validation over the training demonstrations
     via : via-points (:class:`~lmpromp_ppl.predict.timing.ViaPoints`), at phases or,
         when ``via.timed``, at seconds from the observation's start (needs a duration)
     noise_sd : observation noise s.d. in data units (scalar or per DoF);
@@ -249,6 +277,8 @@ def predict_from_fit(
         raise DataError(f"duration must be positive and finite, got {duration!r}")
     if max_start and not estimate:
         raise DataError("max_start needs duration='estimate'")
+    if not 0.0 <= timing_power <= 1.0:
+        raise DataError(f"timing_power must lie in [0, 1], got {timing_power!r}")
     timed = duration is not None
     if not timed and (np.any(phase < 0) or np.any(phase > 1)):
         raise DataError("observation phases must lie in [0, 1]; pass a duration to map times to phases")
@@ -269,12 +299,9 @@ def predict_from_fit(
     draws = _draw_sites(result, bayesian, max_draws)
     timing = None
     if estimate:
-        prior = duration_prior(training_durations(result))
-        correlation = residual_correlation(result) if timing_points == "residual" else None
-        sub = evidence_samples(phase, timing_points, prior, result.num_basis, correlation)
-        evidence_rows = timed_rows(phase[sub], values[sub], noise_sd=noise, scaling=result.scaling, timed=True)
+        prior, evidence_rows = _timing_evidence(result, phase, values, noise, timing_points)
         timing = timing_posterior(result.model, draws, evidence_rows, prior, gamma, exact=exact, max_start=max_start,
-                                  **basis)
+                                  power=timing_power, **basis)
         chosen, grid_weights = timing_nodes(timing.weights, TIMING_NODES)
         durations, starts = timing.duration[chosen], timing.start[chosen]
     else:
