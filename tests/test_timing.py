@@ -71,6 +71,34 @@ def test_noiseless_via_points_are_reproduced_for_every_model():
         assert float(np.max(np.asarray(traj.sd))) < 1e-4, model
 
 
+def test_padded_rows_leave_the_timing_likelihood_unchanged():
+    """The rows are padded to a few sizes so that observations of nearby lengths share one program;
+    the padding's contribution is exact and taken off again, for every model and both conditionings."""
+    from lmpromp_ppl.predict.timing import _padded_rows, _row_bucket, _timing_log_likelihood, timing_log_likelihood
+
+    assert [_row_bucket(n) for n in (1, 4, 5, 8, 9, 13, 15, 29, 57)] == [4, 4, 5, 8, 10, 14, 16, 32, 64]
+    p = _params(3)
+    draws = {
+        "lmpromp": {k: jnp.stack([v, v * 1.1]) for k, v in p.items()},
+        "mixture": {"pi": jnp.array([[0.3, 0.7]]), "b": jnp.stack([p["b"], -p["b"]])[None],
+                    "M": jnp.stack([p["M"], p["M"]])[None], "alpha": jnp.array([[20.0, 10.0]])},
+        "promp": {"mu_w": p["b"][None], "Sigma_w": (jnp.eye(D * J) + p["M"] @ p["M"].T)[None]},
+    }
+    t = np.linspace(0.0, 0.7, 11)
+    y = np.random.default_rng(2).standard_normal((11, D))
+    y[3, 1] = np.nan  # a partial row
+    rows = timed_rows(t, y, noise_sd=0.1, scaling=Scaling.identity(D))
+    padded, num_pad = _padded_rows(rows, D)
+    assert padded.num_rows == _row_bucket(rows.num_rows) > rows.num_rows and num_pad == padded.num_rows - rows.num_rows
+    duration, start = jnp.array([1.0, 1.5, 2.5]), jnp.array([0.0, 0.1, 0.2])
+    for model, d in draws.items():
+        for exact in (True, False):
+            basis = dict(exact=exact, num_dofs=D, num_basis=J)
+            got = timing_log_likelihood(model, d, rows, duration, start, 1.0, **basis)
+            plain = _timing_log_likelihood(model, d, rows, duration, start, 1.0, **basis)
+            np.testing.assert_allclose(np.asarray(got), np.asarray(plain), rtol=1e-12, atol=1e-10)
+
+
 def test_duration_posterior_is_calibrated_under_the_true_model():
     """With the generating parameters, the 90 % interval covers the held-out durations at the nominal rate.
 

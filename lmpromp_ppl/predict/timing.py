@@ -308,7 +308,27 @@ def duration_prior(durations: np.ndarray, min_scale: float = MIN_LOG_SCALE) -> D
     return DurationPrior(float(np.mean(logs)), max(spread, float(min_scale)))
 
 
-@partial(jax.jit, static_argnames=("model", "exact", "num_dofs", "num_basis", "width"))
+def _row_bucket(num_rows: int) -> int:
+    """The smallest of 4, 5, 6, 7 times a power of two that holds ``num_rows`` (at most 25 % more)."""
+    power = 1
+    while 7 * power < num_rows:
+        power *= 2
+    return next(m * power for m in (4, 5, 6, 7) if m * power >= num_rows)
+
+
+def _padded_rows(rows: TimedRows, num_dofs: int) -> tuple[TimedRows, int]:
+    r"""``rows`` padded to :func:`_row_bucket` rows that observe nothing: DoF ``num_dofs`` (out of range,
+    so their design row is zero), value 0, noise variance 1.  Each adds exactly
+    :math:`\log\mathcal N(0 | 0, 1)` to the log evidence at every timing."""
+    num_pad = _row_bucket(rows.num_rows) - rows.num_rows
+    if num_pad == 0:
+        return rows, 0
+    pad = lambda a, fill: jnp.concatenate([jnp.asarray(a), jnp.full((num_pad,), fill, dtype=jnp.asarray(a).dtype)])
+    return TimedRows(time=pad(rows.time, 0.0), timed=pad(rows.timed, False), dof=pad(rows.dof, num_dofs),
+                     order=pad(rows.order, POSITION), values=pad(rows.values, 0.0),
+                     noise_var=pad(rows.noise_var, 1.0)), num_pad
+
+
 def timing_log_likelihood(
     model: str, draws: dict, rows: TimedRows, duration: Array, start: Array, gamma, *,
     exact: bool = True, num_dofs: int, num_basis: int, width: float = DEFAULT_WIDTH,
@@ -316,7 +336,20 @@ def timing_log_likelihood(
     r""":math:`\log \frac1S\sum_s p(\mathbf{o} | \tau, \theta_s)` at each timing ``(duration[g], start[g])``.
 
     ``draws`` holds the sites of ``model`` with one leading draw axis (S may be 1: a plug-in fit).
+    The rows are padded to one of a few sizes (:func:`_padded_rows`; their exact, constant
+    contribution taken off again), so observations of nearby lengths share one compiled program.
     """
+    padded, num_pad = _padded_rows(rows, num_dofs)
+    loglik = _timing_log_likelihood(model, draws, padded, duration, start, gamma, exact=exact, num_dofs=num_dofs,
+                                    num_basis=num_basis, width=width)
+    return loglik + 0.5 * num_pad * math.log(2.0 * math.pi)
+
+
+@partial(jax.jit, static_argnames=("model", "exact", "num_dofs", "num_basis", "width"))
+def _timing_log_likelihood(
+    model: str, draws: dict, rows: TimedRows, duration: Array, start: Array, gamma, *,
+    exact: bool = True, num_dofs: int, num_basis: int, width: float = DEFAULT_WIDTH,
+) -> Array:
     num_draws = next(iter(draws.values())).shape[0]
 
     def one(timing):
