@@ -306,17 +306,7 @@ class FitResult:
     def training_phases(self) -> list[np.ndarray]:
         """Each training demonstration's phases: ``observed_data.aligned_phase`` when the fit
         aligned them, else its time mapped linearly to [0, 1] (padding dropped)."""
-        if not self.observed:
-            raise LmprompError("this result holds no observed data")
-        t = np.asarray(self.observed["t"], dtype=float)
-        aligned = self.observed.get("aligned_phase")
-        out = []
-        for i in range(t.shape[0]):
-            valid = np.isfinite(t[i])
-            ti = t[i, valid]
-            out.append(np.asarray(aligned, dtype=float)[i, valid] if aligned is not None
-                       else (ti - ti[0]) / (ti[-1] - ti[0]))
-        return out
+        return list(self.training_demonstrations().phases())
 
     def training_demonstrations(self) -> Demonstrations:
         """The demonstrations the fit saw, from ``observed_data`` (padding dropped; aligned phases kept as ``warp``)."""
