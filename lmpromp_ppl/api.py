@@ -281,12 +281,23 @@ def _cavi_lr_result(mdata, key, progress, common, options) -> FitResult:
         "active_latent_dims": cavi.active_latent_dims(base.state),
         "linear_response": {"seconds": float(res.lr_seconds), "cg_residual": float(res.lr.residual),
                             "psis_khat": res.psis_khat, "psis_note": res.psis_note,
-                            "importance_resampled": bool(res.resampled)},
+                            "importance_resampled": bool(res.resampled), "refresh_sweeps": int(res.refresh)},
     }
     point = {k: np.asarray(v) for k, v in cavi.point_estimate(base.state).items()}
+
+    def sampler(key, num_draws):
+        """The engine's draws; the refresh sweeps' time is added to the fit's (they are the engine's work)."""
+        draws, seconds, compile_seconds = res.sample_timed(key, num_draws)
+        info = summary["linear_response"]
+        info["refresh_seconds"] = info.get("refresh_seconds", 0.0) + seconds
+        info["refresh_compile_seconds"] = info.get("refresh_compile_seconds", 0.0) + compile_seconds
+        summary["seconds"] += seconds
+        summary["compile_seconds"] += compile_seconds
+        return draws
+
     return FitResult(
         **common,
-        sampler=res.sample,
+        sampler=sampler,
         log_density=res.log_density,
         point=point,
         optimization={"elbo": np.asarray(base.elbo_trace)},

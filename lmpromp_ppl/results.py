@@ -533,6 +533,30 @@ def load(path: str | Path) -> FitResult:
         ds = tree["linear_response"].to_dataset()
         lr = cavi.LinearResponse(**{name: np.asarray(ds[name].values) for name in cavi.LinearResponse._fields})
         result.state = SavedLinearResponse(state, lr)
-        result.sampler = lambda k, n: cavi.sample_lr(k, lr, state, n, bool(state.beta_learned))
+        sweeps = int((summary.get("linear_response") or {}).get("refresh_sweeps", 0))
+        result.sampler = _lr_sampler(result, lr, state, sweeps)
         result.log_density = lambda draws: log_q_lr(lr, state, draws)
     return result
+
+
+def _lr_sampler(result: FitResult, lr, state, sweeps: int):
+    """New draws of a loaded ``cavi_lr`` fit: the linear-response Gaussian, then ``sweeps`` exact-conditional
+    sweeps on the training data rebuilt from ``observed_data`` (:mod:`lmpromp_ppl.inference.refresh`), as
+    the fitted engine drew them (without its importance resampling)."""
+    from lmpromp_ppl.inference import cavi
+    from lmpromp_ppl.inference.refresh import refresh
+
+    def sample(key, num_draws):
+        import jax
+
+        key, key_refresh = jax.random.split(key)
+        draws = cavi.sample_lr(key, lr, state, num_draws, bool(state.beta_learned))
+        if not sweeps:
+            return draws
+        from lmpromp_ppl.data.prepared import prepare_dataset
+
+        inputs = prepare_dataset(result.training_demonstrations(), result.num_basis, width=result.width,
+                                 scaling=result.scaling).model_data
+        return refresh(key_refresh, draws, inputs, result.hyper, sweeps)
+
+    return sample

@@ -49,6 +49,27 @@ def test_fit_reports_the_linear_response_and_its_importance_diagnostics(result):
     assert np.median(np.std(np.asarray(draws["b"])[0], axis=0)) > 1.2 * q_sd
 
 
+def test_draws_end_with_the_exact_conditional_refresh(result, tmp_path):
+    """By default every draw takes REFRESH_SWEEPS Gibbs sweeps (lmpromp_ppl.inference.refresh), said in the
+    summary; they move alpha off the linear-response Gaussian; a loaded fit refreshes its new draws too."""
+    from lmpromp_ppl.inference.refresh import REFRESH_SWEEPS
+
+    assert result.state.refresh == REFRESH_SWEEPS > 0
+    assert result.summary["linear_response"]["refresh_sweeps"] == REFRESH_SWEEPS
+    key = jax.random.key(6)
+    refreshed = result.state.sample(key, 100)
+    plain = result.state._replace(refresh=0).sample(key, 100)
+    assert not np.allclose(np.asarray(refreshed["alpha"]), np.asarray(plain["alpha"]))
+    assert set(refreshed) == set(plain)
+    result.save(tmp_path / "fit", key=jax.random.key(2))
+    back = lp.load(tmp_path / "fit")
+    again = back.sampler(key, 100)
+    bare = cavi.sample_lr(jax.random.split(key)[0], back.state.lr, back.state.state, 100, True)
+    assert not np.allclose(np.asarray(again["alpha"]), np.asarray(bare["alpha"]))
+    with pytest.raises(LmprompError, match="non-negative integer"):
+        check_fit("lmpromp", "cavi_lr", {"refresh": -1})
+
+
 def test_engine_khat_uses_the_collapsed_global_ratios(result):
     model_data = lp.data.prepare_dataset(DATASET, 4).model_data
     out = engine_khat(result, model_data, jax.random.key(3), num_draws=500)
@@ -73,6 +94,12 @@ def test_cli_fits_and_predicts_with_cavi_lr(tmp_path, capsys):
                  "--out", str(out), "--quiet"]) == 0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["engine"] == "cavi_lr" and "linear_response" in summary
+    assert main(["fit", DATASET, "--engine", "cavi_lr", "--latent-dim", "2", "--num-basis", "4", "--refresh", "0",
+                 "--out", str(tmp_path / "bare"), "--quiet"]) == 0
+    assert json.loads((tmp_path / "bare" / "summary.json").read_text())["linear_response"]["refresh_sweeps"] == 0
+    assert main(["fit", DATASET, "--engine", "cavi_lr", "--refresh", "-1", "--out", str(tmp_path / "bad")]) == 2
+    assert not (tmp_path / "bad").exists()
+    capsys.readouterr()
     demos = lp.data.load_dataset(DATASET)
     t, y = demos.times[0], demos.positions[0]
     np.savez(tmp_path / "obs.npz", t=(t[:8] - t[0]) / (t[-1] - t[0]), y=y[:8])
@@ -105,9 +132,9 @@ def test_sbc_replicates_are_vmapped_and_equal_the_single_fit():
 
 def test_importance_resampled_draws_follow_the_weights(result):
     """The resampling path: draws of every site, globals from the pool by the PSIS weights, locals exact."""
-    forced = result.state._replace(resampled=True)
+    forced = result.state._replace(resampled=True, refresh=0)
     draws = forced.sample(jax.random.key(5), 300)
-    plain = result.state.sample(jax.random.key(5), 300)
+    plain = result.state._replace(refresh=0).sample(jax.random.key(5), 300)
     assert set(draws) == set(plain)
     for name in draws:
         assert np.shape(draws[name]) == np.shape(plain[name]), name

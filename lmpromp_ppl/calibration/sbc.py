@@ -349,14 +349,18 @@ def sbc_task(spec: Mapping[str, Any]) -> dict[str, Any]:
 
 def _cavi_lr_records(problem, seed, indices, simulated, options, engine_id) -> list[dict]:
     """``cavi_lr`` replicates: one vmapped joint-family fit and linear response, then per replicate the
-    importance ratios on the collapsed model and (k-hat < 0.7, ``resample="auto"``) resampled draws."""
+    importance ratios on the collapsed model and (k-hat < 0.7, ``resample="auto"``) resampled draws, then
+    ``refresh`` exact-conditional sweeps from each draw (:mod:`lmpromp_ppl.inference.refresh`, default
+    :data:`~lmpromp_ppl.inference.refresh.REFRESH_SWEEPS`; their time counts in the replicate's seconds)."""
     from lmpromp_ppl.inference.cavi import fit_cavi_batched, linear_response_batched
     from lmpromp_ppl.inference.cavi.importance import POOL, global_draws, global_log_ratios, resample_pool, resamples
     from lmpromp_ppl.inference.psis import psis
+    from lmpromp_ppl.inference.refresh import REFRESH_SWEEPS, refresh
     from lmpromp_ppl.models.registry import model_inputs
 
-    options = {"tol": 1e-8, "max_iter": 2000, "family": "rowwise", "resample": "auto", **options}
-    resample = options.pop("resample")
+    options = {"tol": 1e-8, "max_iter": 2000, "family": "rowwise", "resample": "auto", "refresh": REFRESH_SWEEPS,
+               **options}
+    resample, sweeps = options.pop("resample"), options.pop("refresh")
     hyper = problem.hyper()
     fit = fit_cavi_batched([data for _, data in simulated], hyper, local="joint", **options)
     lr, lr_seconds, _ = linear_response_batched(fit, hyper)
@@ -373,8 +377,14 @@ def _cavi_lr_records(problem, seed, indices, simulated, options, engine_id) -> l
             draws = {k: np.asarray(v) for k, v in resample_pool(k_pick, pool, log_weights, problem.num_draws).items()}
         else:
             draws = {k: np.asarray(v) for k, v in global_draws(k_pick, one, problem.num_draws, False, d, V).items()}
+        refresh_seconds = 0.0
+        if sweeps:
+            start = time.perf_counter()
+            draws = {k: np.asarray(v) for k, v in refresh(jax.random.fold_in(key, 7), draws, data, hyper, sweeps).items()}
+            refresh_seconds = time.perf_counter() - start
         info = {"converged": bool(fit.converged[r]), "iterations": int(fit.iterations[r]),
-                "seconds": (fit.seconds + lr_seconds) / len(indices), "psis_khat": khat,
+                "seconds": (fit.seconds + lr_seconds) / len(indices) + refresh_seconds, "psis_khat": khat,
+                "refresh_sweeps": int(sweeps), "refresh_seconds": refresh_seconds,
                 "importance_resampled": bool(resampled)}
         rng = np.random.default_rng([seed, index, engine_id])
         records.append(_replicate_record(problem, index, truth, draws, rng, info))

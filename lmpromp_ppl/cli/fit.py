@@ -89,6 +89,7 @@ def fit_command(
     restarts: Optional[int] = typer.Option(None, min=1, help="CAVI: restarts, best ELBO kept."),
     accelerate: Optional[str] = typer.Option(None, "--accelerate", callback=acceleration, help="CAVI: scale (default: rescalings, rotation and over-relaxation, each keeping the bound non-decreasing), overrelax, or none (the thesis's plain sweeps)."),
     resample: Optional[str] = typer.Option(None, "--resample", help="cavi_lr: auto (default: resample by importance weights when their k-hat is below 0.7) or never."),
+    refresh: Optional[int] = typer.Option(None, "--refresh", min=0, help="cavi_lr: exact-conditional Gibbs sweeps applied to every draw (default 60; 0: the linear-response draws as they are)."),
     chains: Optional[int] = typer.Option(None, min=1, help="NUTS: chains."),
     warmup: Optional[int] = typer.Option(None, min=0, help="NUTS: warm-up iterations per chain."),
     samples: Optional[int] = typer.Option(None, min=1, help="NUTS: draws per chain."),
@@ -110,7 +111,7 @@ def fit_command(
     hyper = hyper_from_options(preset_name or ("default" if engine in ("cavi", "cavi_lr") else "proper"), latent_dim, components, beta, learn_beta)
     options = {
         "max_iter": max_iter, "tol": tol, "num_restarts": restarts, "accelerate": accelerate,
-        "resample": resample, "num_chains": chains, "num_warmup": warmup, "num_samples": samples,
+        "resample": resample, "refresh": refresh, "num_chains": chains, "num_warmup": warmup, "num_samples": samples,
         "num_steps": steps, "learning_rate": learning_rate,
     }
     options = {k: v for k, v in options.items() if v is not None}
@@ -130,7 +131,9 @@ def fit_command(
         if "linear_response" in s:
             khat = s["linear_response"]["psis_khat"]
             resampled = "importance-resampled" if s["linear_response"]["importance_resampled"] else "not resampled"
-            chosen += f", k-hat {'n/a' if khat is None else f'{khat:.2f}'} ({resampled})"
+            sweeps = s["linear_response"].get("refresh_sweeps", 0)
+            chosen += f", k-hat {'n/a' if khat is None else f'{khat:.2f}'} ({resampled}"
+            chosen += f", {sweeps} Gibbs sweeps per draw)" if sweeps else ")"
         typer.echo(f"{model}/{engine} on {dataset}: {s['seconds']:.3g} s{elbo}{ari}{chosen}{note}; wrote {out_dir}")
         for warning in s.get("warnings", []):
             if not warning.startswith("not converged"):  # said in the result line

@@ -46,7 +46,7 @@ ENGINE_MODELS = {
 #: Options each engine accepts through ``fit(..., **options)``.
 ENGINE_OPTIONS = {
     "cavi": frozenset({"tol", "max_iter", "num_restarts", "family", "search", "max_moves", "accelerate"}),
-    "cavi_lr": frozenset({"tol", "max_iter", "num_restarts", "family", "accelerate", "resample"}),
+    "cavi_lr": frozenset({"tol", "max_iter", "num_restarts", "family", "accelerate", "resample", "refresh"}),
     "nuts": frozenset({"num_chains", "num_warmup", "num_samples", "target_accept", "max_tree_depth",
                        "collapsed", "dense_mass", "init"}),
     "svi": frozenset({"num_steps", "learning_rate", "learning_rate_decay", "num_particles", "rank", "stop_tol",
@@ -107,6 +107,10 @@ def check_fit(model: str, engine: str, options: dict) -> None:
 
         if options["resample"] not in RESAMPLE_CHOICES:
             raise LmprompError(f"unknown resample {options['resample']!r}; choose from {list(RESAMPLE_CHOICES)}")
+    if "refresh" in options:
+        from lmpromp_ppl.inference.refresh import check_refresh
+
+        check_refresh(options["refresh"])
     if "search" in options:
         from lmpromp_ppl.inference.cavi import SEARCHES
 

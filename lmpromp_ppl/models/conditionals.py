@@ -31,6 +31,7 @@ __all__ = [
     "sample_w_given_theta",
     "sample_h_given_theta",
     "draw_integrated_sites",
+    "woodbury_precision",
 ]
 
 _LOG_2PI = math.log(2.0 * math.pi)
@@ -126,7 +127,7 @@ def _draw(key: Array, mean: Array, chol: Array) -> Array:
     return mean + solve_triangular(jnp.swapaxes(chol, -1, -2), eps, lower=False)[..., 0]
 
 
-def _woodbury_precision(alpha: Array, M: Array, gamma: float) -> Array:
+def woodbury_precision(alpha: Array, M: Array, gamma: float) -> Array:
     r""":math:`(\alpha^{-1}\mathbf I_d + \gamma^{-1}\mathbf M\mathbf M^T)^{-1}
     = \alpha\mathbf I - \alpha^2\mathbf M(\gamma\mathbf I_V + \alpha\mathbf M^T\mathbf M)^{-1}\mathbf M^T`."""
     num_weights, num_latent = M.shape[-2:]
@@ -214,7 +215,7 @@ def offset_marginal(
     r"""The LMProMP with ``w``, ``h`` and ``b`` integrated out: :math:`p(\mathbf y | \mathbf M, \alpha, \beta)` and :math:`p(\mathbf b | \cdot)`.
 
     With :math:`\mathbf C = \alpha^{-1}\mathbf I + \gamma^{-1}\mathbf M\mathbf M^T`,
-    :math:`\mathbf A = \mathbf C^{-1}` (:func:`_woodbury_precision`) and, per demonstration,
+    :math:`\mathbf A = \mathbf C^{-1}` (:func:`woodbury_precision`) and, per demonstration,
     :math:`\mathbf K_i = \beta^{-1}\mathbf I + \Psi_i\mathbf C\Psi_i^T`, the weights
     :math:`\mathbf w_i \sim \mathcal N(\mathbf b, \mathbf C)` give
     :math:`\mathbf y_i | \mathbf b \sim \mathcal N(\Psi_i\mathbf b, \mathbf K_i)`, and with
@@ -253,7 +254,7 @@ def offset_marginal(
     """
     gram, cross, sq, count = stats
     num_weights = cross.shape[-1]
-    A = _woodbury_precision(alpha, M, gamma)
+    A = woodbury_precision(alpha, M, gamma)
     # per demonstration: P_i = A + beta G_i, mu_i = P_i^{-1} beta c_i and log N(y_i | 0, K_i)
     logdet_A = 2.0 * jnp.sum(jnp.log(jnp.diagonal(jnp.linalg.cholesky(A))))
     mean_w, chol_w, log_evidence = gaussian_conditional(
@@ -335,7 +336,7 @@ def _w_one_draw(key: Array, theta: dict, stats, hyper: Hyperparameters, model: s
         prior_precision = alpha[..., None, None] * eye
     else:
         prior_mean = jnp.broadcast_to(b, (num_demos,) + b.shape)
-        prior_precision = _woodbury_precision(alpha, M, hyper.gamma)
+        prior_precision = woodbury_precision(alpha, M, hyper.gamma)
     if model == "lmpromp":
         mean, chol, _ = gaussian_conditional(
             gram, cross, sq, count, beta, prior_mean, prior_precision

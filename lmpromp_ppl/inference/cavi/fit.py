@@ -166,6 +166,9 @@ class CaviLrFit(NamedTuple):
     inputs : the collapsed model's inputs (for the importance ratios)
     data : the model inputs of the fit
     hyper : the fit's hyperparameters
+    refresh : exact-conditional Gibbs sweeps applied to every draw of :meth:`sample`
+        (:mod:`lmpromp_ppl.inference.refresh`; 0: the draws of the Gaussian or of the
+        importance resampling as they are)
     """
 
     fit: CaviFit
@@ -178,6 +181,7 @@ class CaviLrFit(NamedTuple):
     inputs: object
     data: object
     hyper: Hyperparameters
+    refresh: int = 0
 
     @property
     def state(self):
@@ -185,17 +189,29 @@ class CaviLrFit(NamedTuple):
         return self.fit.state
 
     def sample(self, key: Array, num_draws: int) -> dict:
-        """Draws of every site: importance-resampled when :attr:`resampled`, else the linear-response draws."""
+        """Draws of every site: importance-resampled when :attr:`resampled`, else the linear-response draws;
+        then :attr:`refresh` exact-conditional sweeps from each (:func:`lmpromp_ppl.inference.refresh.refresh`)."""
+        return self.sample_timed(key, num_draws)[0]
+
+    def sample_timed(self, key: Array, num_draws: int) -> tuple[dict, float, float]:
+        """:meth:`sample`, and the seconds of the refresh sweeps and of their compilation (0 without sweeps)."""
         from lmpromp_ppl.inference.cavi.importance import importance_draws
         from lmpromp_ppl.inference.cavi.linear_response import sample_lr
+        from lmpromp_ppl.inference.refresh import refresh
 
         learned = bool(self.fit.state.beta_learned)
+        key, key_refresh = jax.random.split(key)
         if self.resampled:
-            return importance_draws(key, self.lr, self.inputs, self.hyper, num_draws, learned, self.data)[0]
-        return sample_lr(key, self.lr, self.fit.state, num_draws, learned)
+            draws = importance_draws(key, self.lr, self.inputs, self.hyper, num_draws, learned, self.data)[0]
+        else:
+            draws = sample_lr(key, self.lr, self.fit.state, num_draws, learned)
+        if not self.refresh:
+            return draws, 0.0, 0.0
+        return refresh(key_refresh, draws, self.data, self.hyper, self.refresh, timed=True)
 
     def log_density(self, draws: dict) -> Array:
-        """log density of the linear-response draws (global Gaussian and joint local q)."""
+        """log density of the linear-response draws (global Gaussian and joint local q), before any refresh:
+        refreshed draws have no closed-form density (the importance diagnostics use the Gaussian's)."""
         from lmpromp_ppl.inference.cavi.linear_response import log_q_lr
 
         return log_q_lr(self.lr, self.fit.state, draws)
@@ -221,6 +237,7 @@ def fit_lr(
     family: str = "rowwise",
     accelerate: str = "scale",
     resample: str = "auto",
+    refresh: int | None = None,
 ) -> CaviLrFit:
     """Fit the single-type LMProMP by CAVI in the joint local family, then correct the global covariances.
 
@@ -231,16 +248,23 @@ def fit_lr(
     proposal on the model with w and h integrated out (:mod:`.importance`, ratios of
     :data:`~.importance.POOL` draws of a key split from ``key``).  With ``resample="auto"``
     draws are importance-resampled when k-hat < :data:`~lmpromp_ppl.inference.psis.KHAT_RESAMPLE`.
+    Every draw then takes ``refresh`` sweeps of the exact conditionals
+    (:mod:`lmpromp_ppl.inference.refresh`; default
+    :data:`~lmpromp_ppl.inference.refresh.REFRESH_SWEEPS`), a Markov kernel that leaves the
+    posterior invariant and so can only bring the draws closer to it: it removes the bias of
+    q(alpha) that no covariance correction can (docs/derivation.md, *Refreshing the draws*).
     """
     import time
 
     from lmpromp_ppl.inference.cavi.importance import POOL, global_log_ratios, resamples
     from lmpromp_ppl.inference.cavi.linear_response import linear_response
     from lmpromp_ppl.inference.psis import psis
+    from lmpromp_ppl.inference.refresh import REFRESH_SWEEPS, check_refresh
     from lmpromp_ppl.models.registry import model_inputs
 
     if resample not in RESAMPLE_CHOICES:
         raise LmprompError(f"unknown resample {resample!r}; choose from {list(RESAMPLE_CHOICES)}")
+    refresh = check_refresh(REFRESH_SWEEPS if refresh is None else refresh)
     key_fit, key_ratio = jax.random.split(key)
     result = fit(data, hyper, key_fit, tol=tol, max_iter=max_iter, num_restarts=num_restarts, progress=progress,
                  shared_psi=shared_psi, family=family, accelerate=accelerate, local="joint")
@@ -258,4 +282,5 @@ def fit_lr(
     learned = bool(result.state.beta_learned)
     _, ratios = global_log_ratios(key_ratio, lr, inputs, hyper, POOL, learned)
     _, khat, note = psis(ratios)
-    return CaviLrFit(result, lr, lr_seconds, compile_seconds, khat, note, resamples(resample, khat), inputs, data, hyper)
+    return CaviLrFit(result, lr, lr_seconds, compile_seconds, khat, note, resamples(resample, khat), inputs, data, hyper,
+                     refresh)
