@@ -30,6 +30,13 @@ def small_grid(monkeypatch):
     monkeypatch.setattr(api, "AUTO_NUM_BASIS", GRID)
 
 
+@pytest.fixture
+def mixture_grid(monkeypatch):
+    """The mixture's selection over (6, 10, 20): a basis twice as fine as the generator's stays a choice
+    that the bound has to turn down; J = 30 would add the costliest fit and test nothing new."""
+    monkeypatch.setattr(api, "AUTO_NUM_BASIS", GRID[:3])
+
+
 def test_the_bound_picks_a_coarse_basis_for_smooth_data_and_a_fine_one_for_lasa(clusters):
     smooth = lp.select_num_basis(clusters, grid=GRID)
     shape = lp.select_num_basis("lasa:GShape?every=20", grid=GRID)
@@ -74,11 +81,12 @@ def test_fit_auto_is_the_fit_at_the_chosen_basis(clusters, small_grid):
         lp.fit(clusters, num_basis="many")
 
 
-def test_the_mixture_finds_the_four_clusters_at_the_chosen_basis(clusters, small_grid):
+def test_the_mixture_finds_the_four_clusters_at_the_chosen_basis(clusters, mixture_grid):
     hyper = lp.preset("default", num_components=6, latent_dim=2)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         result = lp.fit(clusters, model="mixture", hyper=hyper, num_basis="auto", seed=0)
+    assert result.summary["num_basis_selection"]["grid"] == list(GRID[:3])
     assert result.summary["num_basis_selection"]["num_basis"] <= 10
     assert len(result.summary["active_components"]) == 4
     assert result.summary["ari"] >= 0.95

@@ -32,6 +32,12 @@ def results():
     return out
 
 
+@pytest.fixture(scope="module")
+def trees(results):
+    """Each engine's tree with 200 draws, built once for the tests that read it."""
+    return {engine: res.to_datatree(200) for engine, res in results.items()}
+
+
 def _layout(tree):
     return {
         group: {name: tree[group][name].dims for name in tree[group].to_dataset().data_vars}
@@ -39,23 +45,22 @@ def _layout(tree):
     }
 
 
-def test_every_engine_has_the_same_sites_and_dims(results):
-    layouts = {engine: _layout(res.to_datatree(200)) for engine, res in results.items()}
+def test_every_engine_has_the_same_sites_and_dims(results, trees):
+    layouts = {engine: _layout(tree) for engine, tree in trees.items()}
     reference = layouts["cavi"]
     assert set(reference["posterior"]) >= {"b", "M", "h", "w", "alpha", "lam"}
     assert reference["derived"]["gram_eig"] == ("chain", "draw", "latent")
     for engine, layout in layouts.items():
         assert layout == reference, engine
-    for engine, res in results.items():
-        tree = res.to_datatree(200)
+    for engine, tree in trees.items():
         group = "sample_stats" if engine == "nuts" else "optimization"
         assert group in tree.children, engine
         assert tree.attrs["engine"] == engine and "package_versions" in tree.attrs
 
 
-def test_saved_and_reloaded_trees_are_identical(results, tmp_path):
+def test_saved_and_reloaded_trees_are_identical(results, trees, tmp_path):
     for engine, res in results.items():
-        tree = res.to_datatree(200)
+        tree = trees[engine]
         res.save(tmp_path / engine)
         back = lp.load(tmp_path / engine).to_datatree()
         assert set(back.children) == set(tree.children), engine

@@ -155,7 +155,11 @@ def write_report(out: Path, metrics: dict, results: dict, details: dict, demos) 
     blocks.append(Table(["engine", "seconds", "compile s", "ELBO", "Pareto k-hat", "k-hat (numpyro)",
                          "joint W1", "KL(NUTS||VI)"], rows,
                         caption="Seconds exclude compilation. k-hat (numpyro): numpyro's generalized Pareto fit "
-                                "of the same importance ratios, a cross-check of the arviz-stats fit."))
+                                "of the same importance ratios, a cross-check of the arviz-stats fit."
+                                + (" cavi_lr: seconds include the exact-conditional Gibbs sweeps of its draws; its "
+                                   "k-hat is that of the linear-response Gaussian on the model with w and h "
+                                   "integrated out, the draws before the sweeps (which have no closed-form density)."
+                                   if "cavi_lr" in engines else "")))
     warned = [f"{e}: {w}" for e, m in engines.items() for w in m.get("warnings", [])]
     if warned:
         blocks.append(Alert("engine warnings (their results may not have converged): " + "; ".join(warned) + "."))
