@@ -546,6 +546,8 @@ def _lr_sampler(result: FitResult, lr, state, sweeps: int):
     from lmpromp_ppl.inference import cavi
     from lmpromp_ppl.inference.refresh import refresh
 
+    inputs = []  # the training data's model inputs, built on the first refreshed draw and kept
+
     def sample(key, num_draws):
         import jax
 
@@ -553,10 +555,11 @@ def _lr_sampler(result: FitResult, lr, state, sweeps: int):
         draws = cavi.sample_lr(key, lr, state, num_draws, bool(state.beta_learned))
         if not sweeps:
             return draws
-        from lmpromp_ppl.data.prepared import prepare_dataset
+        if not inputs:
+            from lmpromp_ppl.data.prepared import prepare_dataset
 
-        inputs = prepare_dataset(result.training_demonstrations(), result.num_basis, width=result.width,
-                                 scaling=result.scaling).model_data
-        return refresh(key_refresh, draws, inputs, result.hyper, sweeps)
+            inputs.append(prepare_dataset(result.training_demonstrations(), result.num_basis, width=result.width,
+                                          scaling=result.scaling).model_data)
+        return refresh(key_refresh, draws, inputs[0], result.hyper, sweeps)
 
     return sample
