@@ -118,22 +118,34 @@ def test_a_wrong_conditional_is_caught(ragged):
     assert abs(gaps[0] - gaps[1]) > 0.1
 
 
-def test_sweeps_leave_the_posterior_invariant():
-    """Geweke: (theta, y) from the joint, sweeps from theta; theta after is again a prior draw."""
+@pytest.mark.parametrize("path", ["general", "eigenbasis"])
+def test_sweeps_leave_the_posterior_invariant(path):
+    """Geweke: (theta, y) from the joint, sweeps from theta; theta after is again a prior draw.
+    Both paths: the per-demonstration statistics, and the shared design's eigenbasis."""
+    from lmpromp_ppl.basis import design_matrix
+    from lmpromp_ppl.data.core import SharedDesign, shared_design
+
     hyper = SIMULATION.replace(latent_dim=2)
     R, L, J, T, sweeps = 400, 6, 4, 12, 3
-    from lmpromp_ppl.basis import design_matrix
-
     psi = np.asarray(design_matrix(np.linspace(0.0, 1.0, T), 1, J))
     empty = ModelData(jnp.asarray(np.broadcast_to(psi, (L,) + psi.shape)), jnp.zeros((L, T)), jnp.ones((L, T)))
     prior = sample_prior_predictive("lmpromp", jax.random.key(0), empty, hyper, R)
-    stats = jax.vmap(lambda y: tuple(data_statistics(empty._replace(y=y))))(prior["y"])
+    U = jnp.eye(J)
+    if path == "general":
+        stats = jax.vmap(lambda y: tuple(data_statistics(empty._replace(y=y))))(prior["y"])
+    else:
+        design = shared_design(empty)
+        U = design.rotation
+        stats = jax.vmap(lambda y: SharedDesign(design.rotation, design.eig, y @ (psi @ U), jnp.sum(y**2, axis=1),
+                                                design.count))(prior["y"])
 
     def chain(key, theta, stats_one):
         def body(t, k):
             return rf.sweep(k, t, stats_one, hyper), None
 
-        return jax.lax.scan(body, theta, jax.random.split(key, sweeps))[0]
+        theta = dict(theta, b=theta["b"] @ U, M=U.T @ theta["M"])
+        out = jax.lax.scan(body, theta, jax.random.split(key, sweeps))[0]
+        return dict(out, b=out["b"] @ U.T, M=U @ out["M"])
 
     theta = {k: prior[k] for k in ("b", "M", "alpha", "lam")}
     after = jax.jit(jax.vmap(chain))(jax.random.split(jax.random.key(1), R), theta, stats)
@@ -176,9 +188,10 @@ def test_refresh_shapes_locals_and_bad_input(ragged):
 
 
 def test_shared_design_path_equals_the_general_path():
-    """Demonstrations on one design: the two-factorisation conditionals equal the per-demonstration ones,
-    and refresh takes that path (it detects the equal Gram matrices)."""
+    """Demonstrations on one design: the eigenbasis conditionals (diagonal plus rank V) rotated back equal
+    the per-demonstration ones, a learned beta's rate too, and refresh takes that path."""
     from lmpromp_ppl.basis import design_matrix
+    from lmpromp_ppl.data.core import shared_design
 
     rng = np.random.default_rng(4)
     L, T, J, V = 5, 15, 3, 2
@@ -186,26 +199,36 @@ def test_shared_design_path_equals_the_general_path():
     data = ModelData(jnp.asarray(np.broadcast_to(psi, (L,) + psi.shape)), jnp.asarray(rng.normal(size=(L, 2 * T))),
                      jnp.ones((L, 2 * T)))
     stats = data_statistics(data)
+    design = shared_design(data)
+    U = np.asarray(design.rotation)
     d = psi.shape[1]
     M, b = jnp.asarray(rng.normal(size=(d, V))), jnp.asarray(rng.normal(size=d))
     alpha, beta = jnp.asarray(2.3), jnp.asarray(5.0)
-    cond = rf.shared_conditionals(stats, M, alpha, beta, HYPER)
-    mean_b, chol_b, chol_p = cond.mean_b, cond.chol_b, cond.chol_p
-    mean_w = cond.weights_mean(b, beta, stats[1])
+    cond = rf.rotated_conditionals(design, U.T @ M, alpha, beta, HYPER)
+
+    def covariance(scale, factor):
+        return U @ (np.diag(np.asarray(scale) ** 2) + np.asarray(factor) @ np.asarray(factor).T) @ U.T
+
     general_b, general_chol_b = rf.conditional_b(stats, M, alpha, beta, HYPER)
     general_w, general_chol_w = rf.conditional_locals(stats, b, M, alpha, beta, HYPER)
-    np.testing.assert_allclose(mean_b, general_b, rtol=1e-9, atol=1e-12)
-    np.testing.assert_allclose(chol_b @ chol_b.T, general_chol_b @ general_chol_b.T, rtol=1e-9, atol=1e-12)
-    np.testing.assert_allclose(mean_w, general_w, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(U @ cond.mean_b, general_b, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(covariance(cond.scale_b, cond.factor_b),
+                               np.linalg.inv(general_chol_b @ general_chol_b.T), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(cond.weights_mean(U.T @ b) @ U.T, general_w, rtol=1e-9, atol=1e-12)
     for i in range(L):
-        np.testing.assert_allclose(chol_p @ chol_p.T, general_chol_w[i] @ general_chol_w[i].T, rtol=1e-9)
+        np.testing.assert_allclose(covariance(cond.scale_w, cond.factor_w),
+                                   np.linalg.inv(general_chol_w[i] @ general_chol_w[i].T), rtol=1e-9, atol=1e-12)
+    w = jnp.asarray(rng.normal(size=(L, d)))
+    np.testing.assert_allclose(rf.conditional_beta(design, w @ U, HYPER), rf.conditional_beta(stats, w, HYPER),
+                               rtol=1e-10)
     draws = {"b": rng.normal(size=(2, d)), "M": rng.normal(size=(2, d, V)), "alpha": np.ones(2),
              "lam": np.ones((2, V)), "beta": np.ones(2)}
     hyper = HYPER.replace(learn_beta=True)
     key = jax.random.key(5)
     out = rf.refresh(key, draws, data, hyper, 1)
-    theta = {k: jnp.asarray(v) for k, v in draws.items()}
+    theta = {k: jnp.asarray(v[0]) for k, v in draws.items()}
+    theta = dict(theta, b=theta["b"] @ U, M=U.T @ theta["M"])
     k_sweeps = jax.random.split(jax.random.split(key, 2)[0])[0]  # the first draw's sweep keys (refresh's layout)
     k_one = jax.random.split(k_sweeps, 1)[0]
-    expected = rf.sweep(k_one, {k: v[0] for k, v in theta.items()}, tuple(stats), hyper, True)
-    np.testing.assert_allclose(np.asarray(out["b"][0]), np.asarray(expected["b"]), rtol=1e-10)
+    expected = rf.sweep(k_one, theta, design, hyper)
+    np.testing.assert_allclose(np.asarray(out["b"][0]), U @ np.asarray(expected["b"]), rtol=1e-10)
