@@ -356,6 +356,9 @@ TIMING_SCORED = 24
 TIMING_DRAWS = 50
 
 
+_GOLDEN = (1.0 + 5.0**0.5) / 2.0
+
+
 class TimingCalibration(NamedTuple):
     """The power of the timing's likelihood chosen by cross-validation (:func:`calibrate_timing`)."""
 
@@ -370,7 +373,8 @@ class TimingCalibration(NamedTuple):
 
 def calibrate_timing(result: FitResult, observed_time: float, *, folds: int = TIMING_FOLDS,
                      max_scored: int = TIMING_SCORED, max_draws: int = TIMING_DRAWS,
-                     timing_points: int | str | None = "residual", progress=False) -> TimingCalibration:
+                     timing_points: int | str | None = "residual", max_start: float = 0.0,
+                     progress=False) -> TimingCalibration:
     r"""The power :math:`\kappa` of the timing's likelihood under which the fit's duration
     posterior predicts the training demonstrations' own durations best.
 
@@ -393,6 +397,11 @@ def calibrate_timing(result: FitResult, observed_time: float, *, folds: int = TI
        first ``observed_time`` (the situation of the prediction), and its duration's
        likelihood is evaluated on a grid, averaged over ``max_draws`` posterior draws
        of the refit (:func:`~lmpromp_ppl.predict.from_fit.timing_curve_of`);
+       With ``max_start > 0`` (an observation that may have begun after the movement, as
+       ``predict_from_fit(..., max_start=...)`` weighs it) the j-th scored demonstration is
+       observed from phase :math:`u_j = ` ``max_start`` :math:`\cdot\{(j + 1/2)\varphi\}`
+       (evenly spread, :math:`\varphi` the golden ratio) for ``observed_time`` seconds, and its
+       likelihood runs over the duration and the start phase, the start integrated out;
     3. :math:`\kappa` maximises the summed log density of the held-out true durations,
        :math:`\sum_i \log p_\kappa(\log T_i | \mathbf{o}_i)`, over
        :data:`~lmpromp_ppl.predict.timing.TIMING_POWERS` (0, the prior alone, to 1,
@@ -416,6 +425,8 @@ def calibrate_timing(result: FitResult, observed_time: float, *, folds: int = TI
 
     if not (np.isfinite(observed_time) and observed_time > 0):
         raise LmprompError(f"the observed time must be positive and finite, got {observed_time!r}")
+    if not 0.0 <= max_start < 1.0:
+        raise LmprompError(f"max_start must lie in [0, 1), got {max_start!r}")
     for name, value, least in (("folds", folds, 2), ("max_scored", max_scored, 2), ("max_draws", max_draws, 1)):
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
             raise LmprompError(f"{name} must be an integer of at least {least}, got {value!r}")
@@ -445,11 +456,12 @@ def calibrate_timing(result: FitResult, observed_time: float, *, folds: int = TI
                         warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
                 for i in np.flatnonzero(chosen & (group == k)) if refit is not None else ():
                     t = demos.times[i] - demos.times[i][0]
-                    seen = t <= observed_time
-                    if t[-1] <= observed_time or np.sum(seen) < 2:
+                    begin = max_start * ((scored + 0.5) * _GOLDEN % 1.0) * t[-1]  # 0 without max_start
+                    seen = (t >= begin) & (t <= begin + observed_time)
+                    if t[-1] <= begin + observed_time or np.sum(seen) < 2:
                         continue
-                    curve = timing_curve_of(refit, t[seen], demos.positions[i][seen], timing_points=timing_points,
-                                            max_draws=int(max_draws))
+                    curve = timing_curve_of(refit, t[seen] - begin, demos.positions[i][seen],
+                                            timing_points=timing_points, max_draws=int(max_draws), max_start=max_start)
                     scores += tempered_log_score(curve, float(np.log(t[-1])))
                     scored += 1
             if report is not None:

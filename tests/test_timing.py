@@ -339,6 +339,30 @@ def test_tempered_log_score_is_the_tempered_posterior_density():
     assert np.all(tempered_log_score(curve, grid[-1] + 1.0) == np.log(1e-300))
 
 
+def test_tempered_log_score_integrates_a_start_phase_out():
+    """A curve over (log T, z0): a likelihood that ignores z0 scores as the curve in log T alone; one that
+    depends on z0, with timings that cannot fit excluded, scores as a direct sum over the grid."""
+    from lmpromp_ppl.predict.timing import TIMING_POWERS, TimingCurve, tempered_log_score
+
+    prior = DurationPrior(0.5, 0.2)
+    grid = np.linspace(prior.loc - 6 * prior.scale, prior.loc + 6 * prior.scale, 401)
+    starts = np.linspace(0.0, 0.4, 21)
+    loglik = -0.5 * ((grid - 0.62) / 0.03) ** 2 + 7.0
+    flat = TimingCurve(grid, prior.log_density(grid), np.repeat(loglik[:, None], starts.size, axis=1), starts)
+    np.testing.assert_allclose(tempered_log_score(flat, 0.45),
+                               tempered_log_score(TimingCurve(grid, prior.log_density(grid), loglik), 0.45), atol=1e-9)
+    joint = -0.5 * ((grid[:, None] - 0.62 + 0.5 * starts[None, :]) / 0.05) ** 2
+    joint[:150, 12:] = -np.inf  # short movements cannot have begun late
+    truth = grid[200]
+    scores = tempered_log_score(TimingCurve(grid, prior.log_density(grid), joint, starts), truth)
+    for kappa, score in zip(TIMING_POWERS, scores):
+        density = np.zeros(grid.size)
+        for g in range(grid.size):
+            values = [np.exp(kappa * joint[g, k]) if np.isfinite(joint[g, k]) else 0.0 for k in range(starts.size)]
+            density[g] = np.exp(prior.log_density(grid[g])) * np.trapezoid(values, starts)
+        assert score == pytest.approx(np.log(density[200] / np.trapezoid(density, grid)), abs=1e-8)
+
+
 def _warped_demos(rng, count, warp):
     """A fixed shape whose phase runs as (t / T)^a, log a ~ N(0, warp^2), T ~ 2 s +- 15 %, independent."""
     from lmpromp_ppl.data.core import Demonstrations
@@ -390,12 +414,16 @@ def test_calibrate_timing_rejects_bad_input(timed_fit):
     from lmpromp_ppl.errors import LmprompError
 
     result = load(timed_fit[0])
-    for kwargs in ({"observed_time": -1.0}, {"observed_time": 1.0, "folds": 1}, {"observed_time": 1.0, "max_draws": 0}):
+    for kwargs in ({"observed_time": -1.0}, {"observed_time": 1.0, "folds": 1}, {"observed_time": 1.0, "max_draws": 0},
+                   {"observed_time": 1.0, "max_start": 1.0}):
         with pytest.raises(LmprompError):
             calibrate_timing(result, **kwargs)
     # every training demonstration is shorter than the observation: nothing scores, the power stays 1
     long = calibrate_timing(result, 100.0)
     assert long.num_scored == 0 and long.power == 1.0
+    # an observation that may have begun after the movement: the held-out ones begin late as well
+    late = calibrate_timing(result, 1.0, max_start=0.4, folds=3, max_scored=4, max_draws=10)
+    assert late.num_scored >= 2 and late.power in late.powers and np.all(np.isfinite(late.log_scores))
 
 
 def test_training_demonstrations_drop_the_padding_of_unequal_lengths():

@@ -171,7 +171,7 @@ def predict_command(
         seen = np.any(np.isfinite(y), axis=1)
         if not np.any(seen):
             raise DataError("estimating the timing needs observed values at times (seconds)")
-        calibration = calibrate_timing(result, float(np.max(t[seen])), progress=not quiet)
+        calibration = calibrate_timing(result, float(np.max(t[seen])), max_start=max_start, progress=not quiet)
         power = calibration.power
     pred = predict_from_fit(result, t, y, duration=timing, max_start=max_start, via=via_points, noise_sd=noise_sd, bayesian=bayesian,
                             exact=exact, num_samples=samples, key=jax.random.key(seed),

@@ -191,16 +191,20 @@ def _timing_evidence(result, time: np.ndarray, values: np.ndarray, noise: np.nda
 
 
 def timing_curve_of(result, time: np.ndarray, values: np.ndarray, *, timing_points: int | str | None = "residual",
-                    bayesian: bool = True, exact: bool = True, max_draws: int = 200) -> TimingCurve:
+                    bayesian: bool = True, exact: bool = True, max_draws: int = 200,
+                    max_start: float = 0.0) -> TimingCurve:
     """The log likelihood of the duration of an observation that began with the movement
     (``time``: seconds from its start, ``values`` (T, D) in data units) on one grid over the
     prior's range, as :func:`predict_from_fit` weighs it with ``duration="estimate"``
-    (:func:`~lmpromp_ppl.predict.timing.timing_curve`)."""
+    (:func:`~lmpromp_ppl.predict.timing.timing_curve`); with ``max_start > 0`` the observation
+    may have begun at any phase up to ``max_start`` (``time`` from the observation's start) and
+    the curve runs over the duration and the start phase."""
     time, values = np.asarray(time, dtype=float), np.asarray(values, dtype=float)
     noise = np.broadcast_to(np.asarray(noise_sd_of(result), dtype=float), (result.num_dofs,))
     prior, rows = _timing_evidence(result, time, values, noise, timing_points)
     return timing_curve(result.model, _draw_sites(result, bayesian, max_draws), rows, prior, result.hyper.gamma,
-                        exact=exact, num_dofs=result.num_dofs, num_basis=result.num_basis, width=result.width)
+                        exact=exact, num_dofs=result.num_dofs, num_basis=result.num_basis, width=result.width,
+                        max_start=max_start)
 
 
 def predict_from_fit(

@@ -431,28 +431,42 @@ def timing_posterior(
 
 
 class TimingCurve(NamedTuple):
-    """The log likelihood of the duration (start 0) on one fixed grid in log T over the prior's range."""
+    """The log likelihood of the duration on one fixed grid in log T over the prior's range: of the
+    duration alone (start 0), or, with ``start``, of the duration and the start phase (uniform prior)."""
 
     log_duration: np.ndarray  # (G,)
     log_prior: np.ndarray  # (G,) log prior density of log T
-    log_likelihood: np.ndarray  # (G,) log p(o | T)
+    log_likelihood: np.ndarray  # (G,) log p(o | T), or (G, S) log p(o | T, z0) (-inf where impossible)
+    start: np.ndarray | None = None  # (S,) start phases z0 on [0, max_start], or None (start 0)
 
 
 def timing_curve(
     model: str, draws: dict, rows: TimedRows, prior: DurationPrior, gamma, *,
     exact: bool = True, num_dofs: int, num_basis: int, width: float = DEFAULT_WIDTH, grid_size: int = CURVE_GRID_SIZE,
+    max_start: float = 0.0, start_grid_size: int = START_GRID_SIZE,
 ) -> TimingCurve:
     """:func:`timing_log_likelihood` on ``grid_size`` points in log T over the prior's ``loc +- 6 scale``
-    (above the longest observed time), for any power of the likelihood (:func:`tempered_log_score`)."""
+    (above the longest observed time), for any power of the likelihood (:func:`tempered_log_score`);
+    with ``max_start > 0`` times ``start_grid_size`` start phases on ``[0, max_start]``, as
+    :func:`timing_posterior` weighs an observation that may have begun after the movement."""
+    if not 0.0 <= max_start < 1.0:
+        raise DataError(f"max_start must lie in [0, 1), got {max_start}")
     times = np.asarray(rows.time)[np.asarray(rows.timed)]
     if times.size == 0:
         raise DataError("estimating the timing needs observed values at times (seconds)")
-    log_lo = max(prior.loc - 6.0 * prior.scale, math.log(max(float(times.max()), 1e-300)))
+    max_time = float(times.max())
+    log_lo = max(prior.loc - 6.0 * prior.scale, math.log(max(max_time, 1e-300)))
     log_hi = max(prior.loc + 6.0 * prior.scale, log_lo + 6.0 * prior.scale)
     log_t = np.linspace(log_lo, log_hi, grid_size)
-    loglik = np.asarray(timing_log_likelihood(model, draws, rows, jnp.asarray(np.exp(log_t)), jnp.zeros(grid_size), gamma,
+    starts = np.linspace(0.0, max_start, start_grid_size) if max_start > 0 else np.zeros(1)
+    duration, start = np.repeat(np.exp(log_t), starts.size), np.tile(starts, grid_size)
+    loglik = np.asarray(timing_log_likelihood(model, draws, rows, jnp.asarray(duration), jnp.asarray(start), gamma,
                                               exact=exact, num_dofs=num_dofs, num_basis=num_basis, width=width))
-    return TimingCurve(log_t, prior.log_density(log_t), loglik)
+    if max_start == 0:
+        return TimingCurve(log_t, prior.log_density(log_t), loglik)
+    possible = start + max_time / duration <= 1.0 + 1e-12
+    loglik = np.where(possible, loglik, -np.inf).reshape(grid_size, starts.size)
+    return TimingCurve(log_t, prior.log_density(log_t), loglik, starts)
 
 
 def tempered_log_score(curve: TimingCurve, log_duration: float, powers: np.ndarray = TIMING_POWERS) -> np.ndarray:
@@ -465,12 +479,25 @@ def tempered_log_score(curve: TimingCurve, log_duration: float, powers: np.ndarr
 
     normalised by the trapezoidal rule on the curve's grid (the log density
     interpolated linearly between grid points); a duration off the
-    grid scores ``log(1e-300)``.  Summed over held-out demonstrations it is the
+    grid scores ``log(1e-300)``.  A curve with start phases tempers the joint
+    likelihood and integrates the start out (uniform prior, trapezoidal rule):
+    :math:`p_\kappa(\log T | \mathbf{o}) \propto p(\log T)\int p(\mathbf{o} | T, z_0)^\kappa\,dz_0`,
+    a timing the observation cannot fit (it would run past the movement's end)
+    excluded at every power.  Summed over held-out demonstrations it is the
     cross-validated log score that :func:`lmpromp_ppl.api.calibrate_timing` maximises.
     """
     powers = np.asarray(powers, dtype=float)
-    loglik = np.where(np.isfinite(curve.log_likelihood), curve.log_likelihood, -1e300)  # 0 * -inf is NaN
-    log_post = curve.log_prior[None, :] + powers[:, None] * loglik[None, :]
+    if curve.start is None:
+        loglik = np.where(np.isfinite(curve.log_likelihood), curve.log_likelihood, -1e300)  # 0 * -inf is NaN
+        log_post = curve.log_prior[None, :] + powers[:, None] * loglik[None, :]
+    else:  # p_kappa(log T, z0 | o) on the grid, z0 integrated out (trapezoid); impossible timings excluded at any power
+        loglik = np.where(np.isfinite(curve.log_likelihood), curve.log_likelihood, 0.0)
+        joint = np.where(np.isfinite(curve.log_likelihood)[None], powers[:, None, None] * loglik[None], -np.inf)
+        top = np.max(joint, axis=(1, 2), keepdims=True)
+        marginal = np.trapezoid(np.exp(joint - top), curve.start, axis=2)
+        with np.errstate(divide="ignore"):
+            log_post = curve.log_prior[None, :] + np.log(marginal)
+        log_post = np.where(np.isfinite(log_post), log_post, -1e300)
     log_post = log_post - np.max(log_post, axis=1, keepdims=True)
     log_norm = np.log(np.trapezoid(np.exp(log_post), curve.log_duration, axis=1))
     if not curve.log_duration[0] <= log_duration <= curve.log_duration[-1]:
