@@ -360,6 +360,13 @@ def _timing_log_likelihood(
     return jax.lax.map(one, jnp.stack([duration, start], axis=1), batch_size=8)
 
 
+def _start_grid(max_start: float, size: int) -> np.ndarray:
+    """The start phases of a timing grid: ``size`` points on ``[0, max_start]``, or only 0."""
+    if not 0.0 <= max_start < 1.0:
+        raise DataError(f"max_start must lie in [0, 1), got {max_start}")
+    return np.linspace(0.0, max_start, size) if max_start > 0 else np.zeros(1)
+
+
 def _grid(log_lo: float, log_hi: float, starts: np.ndarray, max_time: float, num: int):
     log_t = np.linspace(log_lo, log_hi, num)
     step = (log_hi - log_lo) / max(num - 1, 1)
@@ -384,14 +391,12 @@ def timing_posterior(
     where the first pass's posterior exceeds :data:`RELATIVE_FLOOR` of its
     largest value, widened by one cell on each side.
     """
-    if not 0.0 <= max_start < 1.0:
-        raise DataError(f"max_start must lie in [0, 1), got {max_start}")
+    starts = _start_grid(max_start, start_grid_size)
     timed = np.asarray(rows.timed)
     times = np.asarray(rows.time)[timed]
     if times.size == 0:
         raise DataError("estimating the timing needs observed values at times (seconds)")
     max_time = float(times.max())
-    starts = np.linspace(0.0, max_start, start_grid_size) if max_start > 0 else np.zeros(1)
     log_lo = prior.loc - 6.0 * prior.scale
     log_hi = prior.loc + 6.0 * prior.scale
     if max_time > 0:
@@ -449,8 +454,7 @@ def timing_curve(
     (above the longest observed time), for any power of the likelihood (:func:`tempered_log_score`);
     with ``max_start > 0`` times ``start_grid_size`` start phases on ``[0, max_start]``, as
     :func:`timing_posterior` weighs an observation that may have begun after the movement."""
-    if not 0.0 <= max_start < 1.0:
-        raise DataError(f"max_start must lie in [0, 1), got {max_start}")
+    starts = _start_grid(max_start, start_grid_size)
     times = np.asarray(rows.time)[np.asarray(rows.timed)]
     if times.size == 0:
         raise DataError("estimating the timing needs observed values at times (seconds)")
@@ -458,13 +462,11 @@ def timing_curve(
     log_lo = max(prior.loc - 6.0 * prior.scale, math.log(max(max_time, 1e-300)))
     log_hi = max(prior.loc + 6.0 * prior.scale, log_lo + 6.0 * prior.scale)
     log_t = np.linspace(log_lo, log_hi, grid_size)
-    starts = np.linspace(0.0, max_start, start_grid_size) if max_start > 0 else np.zeros(1)
-    duration, start = np.repeat(np.exp(log_t), starts.size), np.tile(starts, grid_size)
+    duration, start, _, possible = _grid(log_lo, log_hi, starts, max_time, grid_size)
     loglik = np.asarray(timing_log_likelihood(model, draws, rows, jnp.asarray(duration), jnp.asarray(start), gamma,
                                               exact=exact, num_dofs=num_dofs, num_basis=num_basis, width=width))
     if max_start == 0:
         return TimingCurve(log_t, prior.log_density(log_t), loglik)
-    possible = start + max_time / duration <= 1.0 + 1e-12
     loglik = np.where(possible, loglik, -np.inf).reshape(grid_size, starts.size)
     return TimingCurve(log_t, prior.log_density(log_t), loglik, starts)
 
