@@ -139,7 +139,9 @@ def shared_log_evidence(
     :math:`\log|\mathbf A| - \log|\mathbf P| = d\log\alpha + V\log\gamma - \log|\mathbf D| - \log|\mathbf Q|`.
     Finally :math:`\|\mathbf y_i - \Psi\mathbf m_i\|^2 = \mathbf y_i^T\mathbf y_i - 2\mathbf m_i'^T\mathbf c_i'
     + \mathbf m_i'^T\mathrm{diag}(\mathbf g)\mathbf m_i'` and :math:`\mathbf u_i' = \mathbf c_i' - \mathbf g\circ\mathbf m_i'`.
-    Cost O(L d V + d^2 V) (the rotation of M).
+    Cost O(L d V + d^2 V) (the rotation of M); with ``h`` integrated out every term that touches
+    the statistics is a product of ``cross`` with a vector or a d x V matrix, so a ``vmap`` over draws
+    turns it into one matrix product against all draws.
 
     Parameters
     ----------
@@ -156,25 +158,32 @@ def shared_log_evidence(
     M_r = rotation.T @ M
     b_r = rotation.T @ b
     diag = alpha + beta * g
+    inv = 1.0 / diag
     if h is None:
-        mean = b_r[None, :]
+        # mean b' for every demonstration; each term below is a product of the statistics
+        # (cross, L x d) with a vector or a d x V matrix, so under vmap over draws it is one
+        # matrix product against every draw (no L x d intermediate per draw).
         num_latent = M.shape[-1]
         X = alpha * M_r
         S = gamma * jnp.eye(num_latent) + alpha * (M.T @ M)
-        Q = S - X.T @ (X / diag[:, None])
+        Q = S - X.T @ (X * inv[:, None])
         chol_q = jnp.linalg.cholesky(0.5 * (Q + Q.T))
         logdet = (num_weights * jnp.log(alpha) + num_latent * math.log(gamma) - jnp.sum(jnp.log(diag))
                   - 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol_q))))
+        shift = g * b_r  # u_i = cross_i - shift
+        # u_i^T D^-1 u_i
+        quad = (cross**2) @ inv - 2.0 * (cross @ (shift * inv)) + jnp.sum(shift**2 * inv)
+        # |L_Q^-1 X^T D^-1 u_i|^2 with the factor folded into the d x V matrix
+        fold = solve_triangular(chol_q, (X * inv[:, None]).T, lower=True).T
+        low = cross @ fold - shift @ fold
+        quad = quad + jnp.sum(low**2, axis=-1)
+        residual = sq - 2.0 * (cross @ b_r) + jnp.sum(g * b_r**2)
     else:
         mean = b_r[None, :] + h @ M_r.T
         logdet = num_weights * jnp.log(alpha) - jnp.sum(jnp.log(diag))
-    u = cross - g * mean
-    scaled = u / diag
-    quad = jnp.sum(u * scaled, axis=-1)
-    if h is None:
-        low = solve_triangular(chol_q, (scaled @ X).T, lower=True)
-        quad = quad + jnp.sum(low**2, axis=0)
-    residual = sq - 2.0 * jnp.sum(mean * cross, axis=-1) + jnp.sum(g * mean**2, axis=-1)
+        u = cross - g * mean
+        quad = jnp.sum(u * u * inv, axis=-1)
+        residual = sq - 2.0 * jnp.sum(mean * cross, axis=-1) + jnp.sum(g * mean**2, axis=-1)
     return (0.5 * count * (jnp.log(beta) - _LOG_2PI) + 0.5 * logdet
             - 0.5 * beta * residual + 0.5 * beta**2 * quad)
 
