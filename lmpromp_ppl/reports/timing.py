@@ -24,7 +24,13 @@ that generated it (its ``num_basis`` and the generator's width), so that the
 table separates what the timing estimate loses to the basis from what it
 loses to the fit.  On synthetic data the generating parameters are known, so each fold also
 gives the duration's error under them (all samples, the training durations'
-prior): the information the first third holds, which no fit can beat.
+prior): the information the first third holds, which no fit can beat.  The
+first synthetic set holds the duration to 4.7 % (median) under its generating
+parameters, so a 5 % goal would ask any fit to be as good as the truth; the
+second has the same draws with less noise (observation s.d. 0.01 instead of
+0.05, weight-noise s.d. 0.032 instead of 0.1), chosen before any fit by that
+error alone (1.5 %), so that it measures what the fit loses where the first
+third does determine the duration.
 
 The table gives the RMSE on the remaining two thirds in data units (root mean
 square over samples and DoF, averaged over folds), the ratios of the
@@ -36,6 +42,7 @@ from __future__ import annotations
 
 import json
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -43,9 +50,11 @@ import numpy as np
 
 __all__ = ["DEFAULT_DATASETS", "timing_rows", "fold_row", "render_markdown", "write_report"]
 
-#: The committed table: synthetic demonstrations of known durations, eight LASA shapes, GunPoint.
+#: The committed table: two synthetic sets of known durations, eight LASA shapes, GunPoint.
 DEFAULT_DATASETS = (
     "synthetic:latent?L=40&D=2&J=10&V=3&T=100&duration=2&spread=0.2&seed=0",
+    # the same draws with less noise, chosen by the generating parameters' duration error alone (1.5 %)
+    "synthetic:latent?L=40&D=2&J=10&V=3&T=100&duration=2&spread=0.2&alpha=1000&beta=10000&seed=0",
     "lasa:GShape", "lasa:Angle", "lasa:Sshape", "lasa:Worm", "lasa:CShape", "lasa:NShape", "lasa:Trapezoid",
     "lasa:Spoon",
     "gunpoint:train",
@@ -54,7 +63,23 @@ DEFAULT_DATASETS = (
 
 def fold_row(demos, index: int, *, seed: int = 0, fit_options: dict | None = None) -> dict:
     """One held-out demonstration: RMSEs of the three timings and the duration's estimate
-    (``fit_options``: e.g. ``num_basis`` and ``width`` of every fit; default the library's)."""
+    (``fit_options``: e.g. ``num_basis`` and ``width`` of every fit; default the library's).
+
+    CAVI fits that stop at their iteration limit (the fold's fits and the calibration's refits)
+    are counted in ``fits_at_iteration_limit`` instead of warning once each; other warnings pass."""
+    from lmpromp_ppl.errors import ConvergenceWarning
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", ConvergenceWarning)
+        row = _fold_row(demos, index, seed=seed, fit_options=fit_options)
+    for w in caught:
+        if not issubclass(w.category, ConvergenceWarning):
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    row["fits_at_iteration_limit"] = sum(issubclass(w.category, ConvergenceWarning) for w in caught)
+    return row
+
+
+def _fold_row(demos, index: int, *, seed: int, fit_options: dict | None) -> dict:
     from lmpromp_ppl.api import calibrate_timing, fit
     from lmpromp_ppl.predict.from_fit import population_prediction, predict_from_fit
 
@@ -132,6 +157,7 @@ def _summary(name: str, folds: list[dict]) -> dict:
         row[f"population_sd_{label}"] = mean(f"population_sd_{label}")
     oracle = [f.get("oracle_relative_error") for f in folds]
     row["oracle_median_abs_relative_error"] = None if None in oracle else float(np.median(np.abs(oracle)))
+    row["fits_at_iteration_limit"] = int(sum(f.get("fits_at_iteration_limit", 0) for f in folds))
     row["calibration_power_median"] = float(np.median([f["calibration_power"] for f in folds]))
     row["calibration_power_range"] = [float(np.min([f["calibration_power"] for f in folds])),
                                       float(np.max([f["calibration_power"] for f in folds]))]
@@ -166,7 +192,9 @@ def timing_rows(datasets: Sequence[str], *, max_folds: int = 7, seed: int = 0,
             if echo is not None:
                 r = rows[-1]
                 echo(f"{label}: RMSE true {r['rmse_true']:.3g}, estimated {r['rmse_estimated']:.3g}, "
-                     f"mean {r['rmse_mean']:.3g}; duration error {100 * r['median_abs_relative_error']:.1f} %")
+                     f"mean {r['rmse_mean']:.3g}; duration error {100 * r['median_abs_relative_error']:.1f} %"
+                     + (f"; {r['fits_at_iteration_limit']} CAVI fits stopped at their iteration limit"
+                        if r["fits_at_iteration_limit"] else ""))
     return rows
 
 
@@ -180,7 +208,10 @@ def render_markdown(rows: list[dict]) -> str:
         "of the held-out one observed in time, the remaining two thirds predicted at their true times. RMSE in "
         "data units; `x true` is the ratio to the RMSE with the true duration. Duration error: median of "
         "|estimate / truth - 1|; coverage: of the central 90 % interval; the last column (synthetic data) is the "
-        "duration error under the generating parameters, the information the first third holds. A recorded "
+        "duration error under the generating parameters, the information the first third holds. The second "
+        "synthetic set has the first one's draws with less noise (observation s.d. 0.01 instead of 0.05, "
+        "weight-noise s.d. 0.032 instead of 0.1), chosen by that last column alone (1.5 % against 4.7 %), so that "
+        "the first third determines the duration. A recorded "
         "dataset holds out up to seven demonstrations, a synthetic one every demonstration. Regenerate with "
         "`make timing-report`.",
         "",
