@@ -8,8 +8,11 @@ fitted to *all* demonstrations of a shape, each demonstration's posterior mean o
 its whole movement (more than a first third can tell, and the held-out one is in the fit, both in
 the regression's favour), then leave-one-out over the demonstrations: log T_i predicted from the
 others by the training mean, by Bayesian ridge regression on E[h_i] (scikit-learn's
-``BayesianRidge``, its precisions chosen by the evidence), and by the same regression on the
-start position.  The table gives the median over the demonstrations of |T_pred / T_i - 1|.
+``BayesianRidge``, its precisions chosen by the evidence), by the same regression on the
+start position, and by the same regression on the early speed, a feature of the first third alone
+that needs no model: the log of the time each demonstration takes to cover the path length that
+every demonstration covers within its first third.  The table gives the median over the
+demonstrations of |T_pred / T_i - 1|.
 Run from the repository root (about 15 s on 2 cores)::
 
     python benchmarks/duration_predictability.py --out benchmarks/duration_predictability.json
@@ -29,7 +32,7 @@ from lmpromp_ppl.data import load_dataset
 from lmpromp_ppl.errors import ConvergenceWarning
 
 DATASETS = tuple(f"lasa:{s}" for s in ("GShape", "Angle", "Sshape", "Worm", "CShape", "NShape", "Trapezoid", "Spoon"))
-PREDICTORS = ("training mean", "latent shape E[h]", "start position")
+PREDICTORS = ("training mean", "latent shape E[h]", "start position", "early speed")
 
 
 def loo_errors(log_duration: np.ndarray, features: np.ndarray | None) -> np.ndarray:
@@ -46,6 +49,18 @@ def loo_errors(log_duration: np.ndarray, features: np.ndarray | None) -> np.ndar
     return np.asarray(errors)
 
 
+def early_speed(demos) -> np.ndarray:
+    """(L, 1) log of the time each demonstration takes to cover the path length that every one
+    of them covers within its first third (seconds)."""
+    paths = []
+    for t, y in zip(demos.times, demos.positions):
+        t = t - t[0]
+        length = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(y, axis=0), axis=1))]
+        paths.append((t, length, length[t <= t[-1] / 3.0][-1]))
+    common = min(first_third for _, _, first_third in paths)
+    return np.log([np.interp(common, length, t) for t, length, _ in paths])[:, None]
+
+
 def dataset_row(name: str, seed: int = 0) -> dict:
     demos = load_dataset(name)
     log_duration = np.log([t[-1] - t[0] for t in demos.times])
@@ -55,7 +70,8 @@ def dataset_row(name: str, seed: int = 0) -> dict:
     h = np.asarray(result.posterior_draws(200)["h"])
     h = h.reshape((-1,) + h.shape[-2:]).mean(axis=0)  # (L, V)
     start = np.array([y[0] for y in demos.positions])
-    errors = {label: loo_errors(log_duration, x) for label, x in zip(PREDICTORS, (None, h, start))}
+    features = (None, h, start, early_speed(demos))
+    errors = {label: loo_errors(log_duration, x) for label, x in zip(PREDICTORS, features)}
     return {"dataset": name, "demonstrations": int(log_duration.size),
             "duration_spread": float(np.std(np.exp(log_duration)) / np.mean(np.exp(log_duration))),
             "median_abs_relative_error": {k: float(np.median(v)) for k, v in errors.items()},
