@@ -17,41 +17,22 @@ from __future__ import annotations
 
 import argparse
 import json
-import warnings
 
 import numpy as np
 
-from lmpromp_ppl.api import fit
-from lmpromp_ppl.data import load_dataset
-from lmpromp_ppl.errors import ConvergenceWarning
-from lmpromp_ppl.predict.from_fit import predict_from_fit
+from timing_sensitivity import held_out_folds  # the same folds (run from the repository root)
 
 DATASETS = tuple(f"lasa:{s}" for s in ("GShape", "Angle", "Sshape", "Worm", "CShape", "NShape", "Trapezoid", "Spoon"))
 POWERS = (0.0, 0.03125, 0.125, 0.5, 1.0)
-MAX_FOLDS = 7  # as reports/timing
 
 
 def dataset_row(name: str, seed: int = 0) -> dict:
-    demos = load_dataset(name)
-    folds = min(MAX_FOLDS, demos.num_demos)
-    true_rmse, rmse = np.zeros(folds), np.zeros((folds, len(POWERS)))
-    for row, i in enumerate(np.linspace(0, demos.num_demos - 1, folds).astype(int)):
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", ConvergenceWarning)
-            result = fit(demos.subset(np.arange(demos.num_demos) != i), "lmpromp", "cavi", seed=seed)
-        t = demos.times[i] - demos.times[i][0]
-        y = demos.positions[i]
-        seen = t <= t[-1] / 3.0
-
-        def error(**timing) -> float:
-            pred = predict_from_fit(result, t[seen], y[seen], time_query=t[~seen], num_samples=1, **timing)
-            return float(np.sqrt(np.mean((pred.time_mean - y[~seen]) ** 2)))
-
-        true_rmse[row] = error(duration=float(t[-1]))
-        for j, power in enumerate(POWERS):
-            rmse[row, j] = error(duration="estimate", timing_power=power)
-    ratio = rmse.mean(axis=0) / true_rmse.mean()
-    return {"dataset": name, "folds": folds, "rmse_true": float(true_rmse.mean()),
+    true_rmse, rmse = [], []
+    for duration, error_of in held_out_folds(name, seed):
+        true_rmse.append(error_of(duration=duration))
+        rmse.append([error_of(duration="estimate", timing_power=power) for power in POWERS])
+    ratio = np.mean(rmse, axis=0) / np.mean(true_rmse)
+    return {"dataset": name, "folds": len(rmse), "rmse_true": float(np.mean(true_rmse)),
             "ratio": [float(r) for r in ratio], "best_power": POWERS[int(np.argmin(ratio))],
             "best_ratio": float(ratio.min())}
 

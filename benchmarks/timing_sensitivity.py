@@ -30,24 +30,31 @@ ERRORS = (-0.10, -0.075, -0.05, -0.025, 0.0, 0.025, 0.05, 0.075, 0.10)
 MAX_FOLDS = 7  # as reports/timing
 
 
-def shape_ratios(shape: str, seed: int = 0) -> dict:
-    demos = load_dataset(f"lasa:{shape}")
-    folds = min(MAX_FOLDS, demos.num_demos)
-    rmse = np.zeros((folds, len(ERRORS)))
-    for i in range(folds):
+def held_out_folds(name: str, seed: int = 0):
+    """The folds of ``lmpromp timing``: for each of the first ``MAX_FOLDS`` demonstrations, a function
+    ``rmse(**timing)`` giving the RMSE of the remaining two thirds predicted from the first third
+    (``predict_from_fit`` with those timing options) by the LMProMP fitted to the others."""
+    demos = load_dataset(name)
+    for i in range(min(MAX_FOLDS, demos.num_demos)):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", ConvergenceWarning)
             result = fit(demos.subset(np.arange(demos.num_demos) != i), "lmpromp", "cavi", seed=seed)
         t = demos.times[i] - demos.times[i][0]
         y = demos.positions[i]
-        duration = float(t[-1])
-        seen = t <= duration / 3.0
-        for j, error in enumerate(ERRORS):
-            pred = predict_from_fit(result, t[seen], y[seen], duration=duration * (1.0 + error), time_query=t[~seen],
-                                    num_samples=1)
-            rmse[i, j] = float(np.sqrt(np.mean((pred.time_mean - y[~seen]) ** 2)))
+        seen = t <= t[-1] / 3.0
+
+        def rmse(result=result, t=t, y=y, seen=seen, **timing) -> float:
+            pred = predict_from_fit(result, t[seen], y[seen], time_query=t[~seen], num_samples=1, **timing)
+            return float(np.sqrt(np.mean((pred.time_mean - y[~seen]) ** 2)))
+
+        yield float(t[-1]), rmse
+
+
+def shape_ratios(shape: str, seed: int = 0) -> dict:
+    rmse = np.array([[error_of(duration=duration * (1.0 + error)) for error in ERRORS]
+                     for duration, error_of in held_out_folds(f"lasa:{shape}", seed)])
     ratio = rmse.mean(axis=0) / rmse[:, ERRORS.index(0.0)].mean()
-    return {"dataset": f"lasa:{shape}", "folds": folds, "rmse_true": float(rmse[:, ERRORS.index(0.0)].mean()),
+    return {"dataset": f"lasa:{shape}", "folds": len(rmse), "rmse_true": float(rmse[:, ERRORS.index(0.0)].mean()),
             "ratio": [float(r) for r in ratio]}
 
 
