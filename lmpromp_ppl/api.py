@@ -360,11 +360,12 @@ _GOLDEN = (1.0 + 5.0**0.5) / 2.0
 
 
 class TimingCalibration(NamedTuple):
-    """The power of the timing's likelihood chosen by cross-validation (:func:`calibrate_timing`)."""
+    """The powers of the timing's likelihood weighed by cross-validation (:func:`calibrate_timing`)."""
 
-    power: float  # the chosen power kappa in [0, 1]
+    power: float  # the best-scoring power kappa in [0, 1]
     powers: np.ndarray  # (P,) the candidates (:data:`~lmpromp_ppl.predict.timing.TIMING_POWERS`)
     log_scores: np.ndarray  # (P,) summed log density of the held-out demonstrations' true log durations
+    weights: np.ndarray  # (P,) pseudo-BMA weights of the candidates, proportional to exp(log_scores)
     num_scored: int  # held-out demonstrations longer than the observation (those that score)
     num_folds: int
     observed_time: float
@@ -402,10 +403,14 @@ def calibrate_timing(result: FitResult, observed_time: float, *, folds: int = TI
        observed from phase :math:`u_j = ` ``max_start`` :math:`\cdot\{(j + 1/2)\varphi\}`
        (evenly spread, :math:`\varphi` the golden ratio) for ``observed_time`` seconds, and its
        likelihood runs over the duration and the start phase, the start integrated out;
-    3. :math:`\kappa` maximises the summed log density of the held-out true durations,
-       :math:`\sum_i \log p_\kappa(\log T_i | \mathbf{o}_i)`, over
-       :data:`~lmpromp_ppl.predict.timing.TIMING_POWERS` (0, the prior alone, to 1,
-       the model's posterior).
+    3. each candidate :math:`\kappa_k` of :data:`~lmpromp_ppl.predict.timing.TIMING_POWERS`
+       (0, the prior alone, to 1, the model's posterior) scores the summed log density of the
+       held-out true durations, :math:`S_k = \sum_i \log p_{\kappa_k}(\log T_i | \mathbf{o}_i)`;
+       ``power`` maximises it, and ``weights`` :math:`\pi_k \propto \exp S_k` (pseudo-BMA:
+       Yao, Vehtari, Simpson and Gelman 2018) average over the candidates instead of choosing one.
+       With a handful of held-out demonstrations the scores differ by a few nats across the
+       candidates, so the best one is a noisy choice; the average is what
+       ``lmpromp predict --duration estimate`` uses (docs/derivation.md, *Calibrating the timing*).
 
     The refits use CAVI whatever the fit's engine: the over-confidence is the model's
     (the duration errors under NUTS and ``cavi_lr`` equal CAVI's), and a refit by NUTS
@@ -414,7 +419,8 @@ def calibrate_timing(result: FitResult, observed_time: float, *, folds: int = TI
     demonstrations leave the power at 1.
     A refit's :class:`~lmpromp_ppl.errors.ConvergenceWarning` is counted in
     ``num_unconverged`` instead of being shown once per refit.
-    Pass ``power`` to :func:`~lmpromp_ppl.predict.from_fit.predict_from_fit` as ``timing_power``.
+    Pass ``powers`` and ``weights`` to :func:`~lmpromp_ppl.predict.from_fit.predict_from_fit` as
+    ``timing_power`` and ``timing_weights`` (or ``power`` alone as ``timing_power``).
     """
     import warnings
 
@@ -466,5 +472,11 @@ def calibrate_timing(result: FitResult, observed_time: float, *, folds: int = TI
                     scored += 1
             if report is not None:
                 report(k + 1, float(np.max(scores)) if scored else float("nan"))
-    power = float(TIMING_POWERS[int(np.argmax(scores))]) if scored >= 2 else 1.0
-    return TimingCalibration(power, TIMING_POWERS.copy(), scores, scored, num_folds, float(observed_time), unconverged)
+    if scored >= 2:
+        power = float(TIMING_POWERS[int(np.argmax(scores))])
+        weights = np.exp(scores - np.max(scores))
+        weights = weights / weights.sum()
+    else:  # nothing to score: the model's posterior
+        power, weights = 1.0, (TIMING_POWERS == 1.0).astype(float)
+    return TimingCalibration(power, TIMING_POWERS.copy(), scores, weights, scored, num_folds, float(observed_time),
+                             unconverged)

@@ -121,6 +121,38 @@ def test_duration_posterior_is_calibrated_under_the_true_model():
     assert np.median(np.abs(errors)) < 0.1
 
 
+def test_several_timing_powers_mix_the_tempered_posteriors():
+    """Powers with weights give the mixture of the tempered posteriors, each normalised on the grid;
+    one power with any weight is that power's posterior."""
+    demos = load_dataset("synthetic:latent?L=30&D=2&J=10&V=3&T=60&duration=2&spread=0.2&seed=5")
+    md = demos.metadata
+    draws = {"b": jnp.asarray(md["b"])[None], "M": jnp.asarray(md["M"])[None], "alpha": jnp.asarray([100.0])}
+    prior = duration_prior(md["durations"][:20])
+    t, y, T = demos.times[25], demos.positions[25], md["durations"][25]
+    rows = timed_rows(t[t <= T / 3], y[t <= T / 3], noise_sd=1 / np.sqrt(400.0), scaling=Scaling.identity(2))
+    basis = dict(num_dofs=2, num_basis=10, width=GENERATOR_WIDTH)
+    single = timing_posterior("lmpromp", draws, rows, prior, 1.0, power=0.3, **basis)
+    again = timing_posterior("lmpromp", draws, rows, prior, 1.0, power=np.array([0.3, 0.3]),
+                             power_weights=np.array([0.2, 0.5]), **basis)
+    np.testing.assert_allclose(again.weights, single.weights, rtol=1e-10, atol=1e-300)
+    mixed = timing_posterior("lmpromp", draws, rows, prior, 1.0, power=np.array([0.0, 0.05, 1.0]),
+                             power_weights=np.array([0.25, 0.0, 0.75]), **basis)
+
+    def normalised(log_p):
+        w = np.exp(log_p - log_p.max())
+        return w / w.sum()
+
+    expected = 0.25 * normalised(mixed.log_prior) + 0.75 * normalised(mixed.log_prior + mixed.log_likelihood)
+    np.testing.assert_allclose(mixed.weights, expected, rtol=1e-9, atol=1e-15)
+    # the prior's component widens the interval beyond the model's posterior alone
+    alone = timing_posterior("lmpromp", draws, rows, prior, 1.0, **basis)
+    assert mixed.interval[0] < alone.interval[0] and mixed.interval[1] > alone.interval[1]
+    for power, weights in ((np.array([0.5, 1.5]), np.array([1.0, 1.0])), (np.array([0.5, 1.0]), None),
+                           (np.array([0.5, 1.0]), np.array([0.0, 0.0])), (np.array([0.5, 1.0]), np.array([1.0]))):
+        with pytest.raises(DataError):
+            timing_posterior("lmpromp", draws, rows, prior, 1.0, power=power, power_weights=weights, **basis)
+
+
 def test_timing_rows_reject_bad_input():
     scaling = Scaling.identity(D)
     with pytest.raises(DataError):
@@ -166,7 +198,10 @@ def test_cli_predict_estimates_the_duration_and_passes_via_points(timed_fit, tmp
     printed = capsys.readouterr().out
     assert "estimated duration" in printed and "power of the timing's likelihood" in printed
     with np.load(tmp_path / "pred" / "prediction.npz") as f:
-        assert 0.0 <= float(f["timing_power"]) <= 1.0  # calibrated by default
+        # calibrated by default: the candidate powers averaged, their weights stored
+        weights, powers = f["timing_weights"], f["timing_powers"]
+        assert weights.shape == powers.shape and np.all(weights >= 0) and weights.sum() == pytest.approx(1.0)
+        assert float(f["timing_power"]) == pytest.approx(np.sum(weights * powers))
         lo, hi = f["duration_interval"]
         assert f["duration_interval"].shape == (2,) and lo < float(f["duration"]) < hi
         # the training durations are 3 s +- 10 %: the estimate lies in their range
@@ -290,6 +325,7 @@ def test_cli_timing_report(tmp_path, capsys):
         assert lo < fold["estimate"] < hi and fold["covered"] == (lo <= fold["duration"] <= hi)
         assert fold["rmse_true"] > 0 and fold["population_sd_aligned"] > 0
         assert 0.0 <= fold["calibration_power"] <= 1.0 and fold["calibrated_estimate"] > 0
+        assert 0.0 <= fold["calibration_best_power"] <= 1.0 and fold["best_estimate"] > 0
         assert fold["fits_at_iteration_limit"] >= 0
     assert row["fits_at_iteration_limit"] == sum(f["fits_at_iteration_limit"] for f in row["per_fold"])
     assert row["ratio_estimated"] == pytest.approx(row["rmse_estimated"] / row["rmse_true"])
@@ -413,17 +449,27 @@ def test_calibrated_power_tempers_a_misleading_timing_likelihood(warp):
     calibration = calibrate_timing(result, 0.6)
     assert calibration.num_scored == 10 and calibration.num_folds == 8
     assert calibration.power == calibration.powers[np.argmax(calibration.log_scores)]
-    unseen = np.zeros(calibration.powers.size)
+    # pseudo-BMA: weights proportional to exp(log score)
+    assert calibration.weights.sum() == pytest.approx(1.0)
+    np.testing.assert_allclose(np.log(calibration.weights), calibration.log_scores - calibration.log_scores.max()
+                               - np.log(np.sum(np.exp(calibration.log_scores - calibration.log_scores.max()))),
+                               atol=1e-9)
+    unseen, averaged = np.zeros(calibration.powers.size), 0.0
     for t, y in zip(test.times, test.positions):
         seen = t <= 0.6
-        unseen += tempered_log_score(timing_curve_of(result, t[seen], y[seen]), float(np.log(t[-1])))
+        scores = tempered_log_score(timing_curve_of(result, t[seen], y[seen]), float(np.log(t[-1])))
+        unseen += scores
+        top = scores.max()  # the mixture's log density of the true duration
+        averaged += top + np.log(np.sum(calibration.weights * np.exp(scores - top)))
     chosen = int(np.argmax(calibration.log_scores))
     if warp > 0:
         assert calibration.power < 0.2
         assert (unseen[chosen] - unseen[-1]) / test.num_demos > 2.0  # nats per unseen demonstration
+        assert (averaged - unseen[-1]) / test.num_demos > 2.0
     else:
         assert calibration.power >= 0.5
         assert unseen[chosen] >= unseen[-1] - 0.5 * test.num_demos
+        assert averaged >= unseen[-1] - 0.5 * test.num_demos
 
 
 def test_calibrate_timing_rejects_bad_input(timed_fit):
@@ -439,6 +485,7 @@ def test_calibrate_timing_rejects_bad_input(timed_fit):
     # every training demonstration is shorter than the observation: nothing scores, the power stays 1
     long = calibrate_timing(result, 100.0)
     assert long.num_scored == 0 and long.power == 1.0
+    assert long.weights[long.powers == 1.0] == pytest.approx(1.0) and long.weights.sum() == pytest.approx(1.0)
     # an observation that may have begun after the movement: the held-out ones begin late as well
     late = calibrate_timing(result, 1.0, max_start=0.4, folds=3, max_scored=4, max_draws=10)
     assert late.num_scored >= 2 and late.power in late.powers and np.all(np.isfinite(late.log_scores))

@@ -129,7 +129,7 @@ def predict_command(
     out: Path = typer.Option(..., "--out", help="Output directory (prediction.npz, prediction.png)."),
     duration: Optional[str] = typer.Option(None, help="SECONDS: map times to phases as t / duration; estimate: infer the duration (times in seconds from the movement's start). Default: t are phases."),
     max_start: float = typer.Option(0.0, "--max-start", help="With --duration estimate: the observation may have begun after the movement, at any phase up to this one (in [0, 1); times then count from the observation's start); its start phase is estimated too. Default 0: it began with the movement."),
-    timing_power: Optional[str] = typer.Option(None, "--timing-power", help="With --duration estimate: the power in [0, 1] of the timing's likelihood (1: the model's posterior, 0: the duration prior alone), or calibrate (default): the power under which refits without each of up to 8 folds of the training demonstrations predict the held-out durations best, each observed from its start for as long as this observation (lmpromp_ppl.calibrate_timing; the refits use CAVI)."),
+    timing_power: Optional[str] = typer.Option(None, "--timing-power", help="With --duration estimate: the power in [0, 1] of the timing's likelihood (1: the model's posterior, 0: the duration prior alone), or calibrate (default): the candidate powers averaged with weights by how well refits without each of up to 8 folds of the training demonstrations predict the held-out durations, each observed from its start for as long as this observation (lmpromp_ppl.calibrate_timing; the refits use CAVI)."),
     via: Optional[Path] = typer.Option(None, "--via", help="Via-points: .npz with phase (V,) or t (V,) seconds, y (V, D), optional dy (V, D) and sd; or .csv with a phase or t column then D position and optionally D velocity columns; NaN = free."),
     noise_sd: Optional[float] = typer.Option(None, "--noise-sd", callback=positive, help="Observation noise s.d. in data units (default: the fit's, from its learned beta)."),
     bayesian: bool = typer.Option(True, "--bayesian/--plug-in", help="Average over posterior draws (default) or plug in the posterior mean."),
@@ -172,10 +172,13 @@ def predict_command(
         if not np.any(seen):
             raise DataError("estimating the timing needs observed values at times (seconds)")
         calibration = calibrate_timing(result, float(np.max(t[seen])), max_start=max_start, progress=not quiet)
-        power = calibration.power
+        powers, power_weights = calibration.powers, calibration.weights
+        power = float(np.sum(powers * power_weights))
+    else:
+        powers, power_weights = (1.0 if timing != "estimate" else power), None
     pred = predict_from_fit(result, t, y, duration=timing, max_start=max_start, via=via_points, noise_sd=noise_sd, bayesian=bayesian,
                             exact=exact, num_samples=samples, key=jax.random.key(seed),
-                            timing_power=1.0 if timing != "estimate" else power)
+                            timing_power=powers, timing_weights=power_weights)
     out_dir = claim_out_dir(out, force)
     extra = {}
     if timing is not None:
@@ -183,6 +186,8 @@ def predict_command(
     if timing == "estimate":
         extra.update(duration=np.asarray(pred.duration), duration_interval=np.asarray(pred.duration_interval),
                      timing_power=np.asarray(power))
+        if calibration is not None:
+            extra.update(timing_powers=calibration.powers, timing_weights=calibration.weights)
     if max_start > 0:
         extra.update(start_phase=np.asarray(pred.timing.start_estimate))
     np.savez(out_dir / "prediction.npz", phase=pred.phase, mean=pred.mean, sd=pred.sd, sd_obs=pred.sd_obs,
@@ -223,11 +228,15 @@ def predict_command(
     if not quiet and timing == "estimate":
         lo, hi = pred.duration_interval
         typer.echo(f"estimated duration {pred.duration:.4g} (90 % interval {lo:.4g} to {hi:.4g}), in the observation's time unit")
-        how = (f"chosen by refits without each of {calibration.num_folds} folds, {calibration.num_scored} held-out "
-               "durations scored" if calibration is not None else "as given")
-        if calibration is not None and calibration.num_unconverged:
-            how += f"; {calibration.num_unconverged} refits stopped at CAVI's iteration limit"
-        typer.echo(f"power of the timing's likelihood {power:.3g} ({how})")
+        if calibration is None:
+            typer.echo(f"power of the timing's likelihood {power:.3g} (as given)")
+        else:
+            how = (f"weighed by refits without each of {calibration.num_folds} folds, {calibration.num_scored} "
+                   f"held-out durations scored; best single power {calibration.power:.3g}")
+            if calibration.num_unconverged:
+                how += f"; {calibration.num_unconverged} refits stopped at CAVI's iteration limit"
+            typer.echo(f"power of the timing's likelihood averaged over {calibration.powers.size} candidates, "
+                       f"mean {power:.3g} ({how})")
         if max_start > 0:
             typer.echo(f"estimated start phase of the observation {pred.timing.start_estimate:.3g}")
     if not quiet:

@@ -26,6 +26,7 @@ from lmpromp_ppl._keys import PREDICTION, seed_key
 from lmpromp_ppl.errors import DataError, LmprompError
 from lmpromp_ppl.predict.conditioning import SITES, condition, condition_draws
 from lmpromp_ppl.predict.timing import (
+    _power_mixture,
     TimingCurve,
     TimingPosterior,
     ViaPoints,
@@ -215,7 +216,8 @@ def predict_from_fit(
     duration: float | str | None = None,
     max_start: float = 0.0,
     timing_points: int | str | None = "residual",
-    timing_power: float = 1.0,
+    timing_power: float | np.ndarray = 1.0,
+    timing_weights: np.ndarray | None = None,
     via: ViaPoints | None = None,
     noise_sd: float | np.ndarray | None = None,
     bayesian: bool = True,
@@ -249,8 +251,10 @@ def predict_from_fit(
         basis spacing), a number of evenly spaced samples, or ``None`` (all); :func:`evidence_samples`
     timing_power : with ``duration="estimate"``, the power :math:`\kappa \in [0, 1]` of the timing's
         likelihood, :math:`p(\tau | \mathbf{o}) \propto p(\tau)\, p(\mathbf{o} | \tau)^\kappa`
-        (1: the model's posterior; 0: the prior); :func:`lmpromp_ppl.api.calibrate_timing` chooses it
-        by cross-validation over the training demonstrations
+        (1: the model's posterior; 0: the prior), or several powers, whose posteriors are mixed with
+        ``timing_weights``; :func:`lmpromp_ppl.api.calibrate_timing` weighs the candidate powers
+        by cross-validation over the training demonstrations (its ``powers`` and ``weights``)
+    timing_weights : with several ``timing_power``, their weights (non-negative)
     via : via-points (:class:`~lmpromp_ppl.predict.timing.ViaPoints`), at phases or,
         when ``via.timed``, at seconds from the observation's start (needs a duration)
     noise_sd : observation noise s.d. in data units (scalar or per DoF);
@@ -281,8 +285,7 @@ def predict_from_fit(
         raise DataError(f"duration must be positive and finite, got {duration!r}")
     if max_start and not estimate:
         raise DataError("max_start needs duration='estimate'")
-    if not 0.0 <= timing_power <= 1.0:
-        raise DataError(f"timing_power must lie in [0, 1], got {timing_power!r}")
+    _power_mixture(timing_power, timing_weights)  # checked before any work
     timed = duration is not None
     if not timed and (np.any(phase < 0) or np.any(phase > 1)):
         raise DataError("observation phases must lie in [0, 1]; pass a duration to map times to phases")
@@ -305,7 +308,7 @@ def predict_from_fit(
     if estimate:
         prior, evidence_rows = _timing_evidence(result, phase, values, noise, timing_points)
         timing = timing_posterior(result.model, draws, evidence_rows, prior, gamma, exact=exact, max_start=max_start,
-                                  power=timing_power, **basis)
+                                  power=timing_power, power_weights=timing_weights, **basis)
         chosen, grid_weights = timing_nodes(timing.weights, TIMING_NODES)
         durations, starts = timing.duration[chosen], timing.start[chosen]
     else:

@@ -381,9 +381,15 @@ def _grid(log_lo: float, log_hi: float, starts: np.ndarray, max_time: float, num
 def timing_posterior(
     model: str, draws: dict, rows: TimedRows, prior: DurationPrior, gamma, *,
     exact: bool = True, num_dofs: int, num_basis: int, width: float = DEFAULT_WIDTH,
-    max_start: float = 0.0, power: float = 1.0, grid_size: int = GRID_SIZE, start_grid_size: int = START_GRID_SIZE,
+    max_start: float = 0.0, power: float | np.ndarray = 1.0, power_weights: np.ndarray | None = None,
+    grid_size: int = GRID_SIZE, start_grid_size: int = START_GRID_SIZE,
 ) -> TimingPosterior:
-    """The posterior over the duration (and, with ``max_start > 0``, the start phase) on a grid.
+    r"""The posterior over the duration (and, with ``max_start > 0``, the start phase) on a grid.
+
+    ``power`` :math:`\kappa` tempers the likelihood, :math:`p_\kappa(\tau | \mathbf{o}) \propto
+    p(\tau)\, p(\mathbf{o} | \tau)^\kappa`; several powers with ``power_weights`` :math:`\pi_k`
+    give the mixture :math:`\sum_k \pi_k\, p_{\kappa_k}(\tau | \mathbf{o})`, each component
+    normalised on the grid (the average over powers of :func:`lmpromp_ppl.api.calibrate_timing`).
 
     First pass: ``grid_size`` points in log T over the prior's ``loc +- 6 scale``
     (above the longest observed time), times ``start_grid_size`` start phases in
@@ -404,6 +410,7 @@ def timing_posterior(
         if log_hi <= log_lo:
             log_hi = log_lo + 6.0 * prior.scale
     basis = dict(exact=exact, num_dofs=num_dofs, num_basis=num_basis, width=width)
+    powers, log_mix = _power_mixture(power, power_weights)
 
     def evaluate(lo, hi):
         duration, start, log_cell, possible = _grid(lo, hi, starts, max_time, grid_size)
@@ -411,7 +418,13 @@ def timing_posterior(
                                                   gamma, **basis))
         # log T ~ N(loc, scale^2) and z0 ~ U[0, max_start], times the grid cell
         log_prior = prior.log_density(np.log(duration)) - (math.log(max_start) if max_start > 0 else 0.0) + log_cell
-        log_post = np.where(possible & np.isfinite(loglik), log_prior + power * loglik, -np.inf)
+        ok = possible & np.isfinite(loglik)
+        parts = np.where(ok[None], log_prior[None] + powers[:, None] * np.where(ok, loglik, 0.0)[None], -np.inf)
+        if powers.size == 1:
+            log_post = parts[0]
+        else:  # each tempered posterior normalised on this grid, then mixed
+            parts = parts - np.asarray(logsumexp(jnp.asarray(parts), axis=1, keepdims=True))
+            log_post = np.asarray(logsumexp(jnp.asarray(parts + log_mix[:, None]), axis=0))
         return duration, start, log_prior, np.where(possible, loglik, -np.inf), log_post
 
     duration, start, log_prior, loglik, log_post = evaluate(log_lo, log_hi)
@@ -433,6 +446,23 @@ def timing_posterior(
         estimate=float(_quantile(duration, weights, 0.5)), interval=_quantile(duration, weights, [0.05, 0.95]),
         start_estimate=start_median,
     )
+
+
+def _power_mixture(power, power_weights) -> tuple[np.ndarray, np.ndarray]:
+    """The powers with positive weight and their log weights (normalised)."""
+    powers = np.atleast_1d(np.asarray(power, dtype=float))
+    if powers.ndim != 1 or powers.size == 0 or np.any(~np.isfinite(powers)) or np.any(powers < 0) or np.any(powers > 1):
+        raise DataError(f"timing powers must lie in [0, 1], got {power!r}")
+    if power_weights is None:
+        if powers.size != 1:
+            raise DataError("several timing powers need their weights")
+        return powers, np.zeros(1)
+    weights = np.atleast_1d(np.asarray(power_weights, dtype=float))
+    if weights.shape != powers.shape or np.any(~np.isfinite(weights)) or np.any(weights < 0) or weights.sum() <= 0:
+        raise DataError(f"timing power weights must be {powers.size} non-negative numbers, not all 0")
+    keep = weights > 0
+    with np.errstate(divide="ignore"):
+        return powers[keep], np.log(weights[keep] / weights.sum())
 
 
 class TimingCurve(NamedTuple):

@@ -80,8 +80,8 @@ def fold_row(demos, index: int, *, seed: int = 0, fit_options: dict | None = Non
 
 
 def _fold_row(demos, index: int, *, seed: int, fit_options: dict | None) -> dict:
-    from lmpromp_ppl.api import calibrate_timing, fit
-    from lmpromp_ppl.predict.from_fit import population_prediction, predict_from_fit
+    from lmpromp_ppl.api import fit
+    from lmpromp_ppl.predict.from_fit import population_prediction
 
     keep = np.arange(demos.num_demos) != index
     train = demos.subset(keep)
@@ -92,20 +92,45 @@ def _fold_row(demos, index: int, *, seed: int, fit_options: dict | None) -> dict
     y = demos.positions[index]
     duration = float(t[-1])
     seen = t <= duration / 3.0
-    rest = ~seen
     mean_duration = float(np.mean([tt[-1] - tt[0] for tt in train.times]))
     row = {"fold": int(index), "duration": duration, "mean_duration": mean_duration}
+    variants = (("true", result, duration, (1.0, None)), ("estimated", result, "estimate", (1.0, None)),
+                ("mean", result, mean_duration, (1.0, None)), ("aligned_true", aligned, duration, (1.0, None)),
+                ("aligned_estimated", aligned, "estimate", (1.0, None)))
+    row |= _prediction_columns(variants, t, y, seen)
+    row |= calibrated_columns(result, t, y, seen)
+    for label, fitted in (("linear", result), ("aligned", aligned)):
+        row[f"population_sd_{label}"] = float(np.mean(population_prediction(fitted, num_samples=1).sd))
+    if {"b", "M", "alpha", "beta", "num_basis"} <= set(demos.metadata):
+        row["oracle_relative_error"] = _oracle_estimate(demos.metadata, t[seen], y[seen],
+                                                        [tt[-1] - tt[0] for tt in train.times]) / duration - 1.0
+    return row
+
+
+def calibrated_columns(result, t: np.ndarray, y: np.ndarray, seen: np.ndarray) -> dict:
+    """A fold's columns of the calibrated timing (:func:`lmpromp_ppl.api.calibrate_timing`): the candidate
+    powers averaged (``calibrated_*``, what ``lmpromp predict`` does) and the best-scoring one (``best_*``)."""
+    from lmpromp_ppl.api import calibrate_timing
+
     started = time.perf_counter()
     calibration = calibrate_timing(result, float(t[seen][-1]))
-    row["calibration_power"] = calibration.power
-    row["seconds_calibration"] = time.perf_counter() - started
+    row = {"calibration_power": float(np.sum(calibration.powers * calibration.weights)),  # the weighted mean power
+           "calibration_best_power": calibration.power, "seconds_calibration": time.perf_counter() - started}
+    variants = (("calibrated_estimated", result, "estimate", (calibration.powers, calibration.weights)),
+                ("best_estimated", result, "estimate", (calibration.power, None)))
+    return row | _prediction_columns(variants, t, y, seen)
+
+
+def _prediction_columns(variants, t: np.ndarray, y: np.ndarray, seen: np.ndarray) -> dict:
+    """RMSE on the unseen rest (and, for an estimated timing, the duration's estimate) of each
+    ``(label, fit, duration, (power, power_weights))``."""
+    from lmpromp_ppl.predict.from_fit import predict_from_fit
+
+    row, rest, duration = {}, ~seen, float(t[-1])
     started = time.perf_counter()
-    variants = (("true", result, duration, 1.0), ("estimated", result, "estimate", 1.0),
-                ("mean", result, mean_duration, 1.0), ("aligned_true", aligned, duration, 1.0),
-                ("aligned_estimated", aligned, "estimate", 1.0), ("calibrated_estimated", result, "estimate", calibration.power))
-    for label, fitted, timing, power in variants:
+    for label, fitted, timing, (power, power_weights) in variants:
         pred = predict_from_fit(fitted, t[seen], y[seen], duration=timing, time_query=t[rest], num_samples=1,
-                                timing_power=power)
+                                timing_power=power, timing_weights=power_weights)
         row[f"rmse_{label}"] = float(np.sqrt(np.mean((pred.time_mean - y[rest]) ** 2)))
         if label.endswith("estimated"):
             prefix = label[: -len("estimated")]
@@ -116,11 +141,6 @@ def _fold_row(demos, index: int, *, seed: int, fit_options: dict | None) -> dict
             if not prefix:
                 row["seconds_estimated"] = time.perf_counter() - started
         started = time.perf_counter()
-    for label, fitted in (("linear", result), ("aligned", aligned)):
-        row[f"population_sd_{label}"] = float(np.mean(population_prediction(fitted, num_samples=1).sd))
-    if {"b", "M", "alpha", "beta", "num_basis"} <= set(demos.metadata):
-        row["oracle_relative_error"] = _oracle_estimate(demos.metadata, t[seen], y[seen],
-                                                        [tt[-1] - tt[0] for tt in train.times]) / duration - 1.0
     return row
 
 
@@ -146,11 +166,12 @@ def _summary(name: str, folds: list[dict]) -> dict:
 
     durations = np.array([f["duration"] for f in folds])
     row = {"dataset": name, "folds": len(folds), "duration_spread": float(np.std(durations) / np.mean(durations))}
-    for label in ("true", "estimated", "mean", "aligned_true", "aligned_estimated", "calibrated_estimated"):
+    for label in ("true", "estimated", "mean", "aligned_true", "aligned_estimated", "calibrated_estimated",
+                  "best_estimated"):
         row[f"rmse_{label}"] = mean(f"rmse_{label}")
         if label != "true":
             row[f"ratio_{label}"] = row[f"rmse_{label}"] / mean("rmse_true")
-    for prefix in ("", "aligned_", "calibrated_"):
+    for prefix in ("", "aligned_", "calibrated_", "best_"):
         row[f"{prefix}median_abs_relative_error"] = float(np.median(np.abs([f[f"{prefix}relative_error"] for f in folds])))
         row[f"{prefix}coverage90"] = mean(f"{prefix}covered")
     for label in ("linear", "aligned"):
@@ -158,9 +179,10 @@ def _summary(name: str, folds: list[dict]) -> dict:
     oracle = [f.get("oracle_relative_error") for f in folds]
     row["oracle_median_abs_relative_error"] = None if None in oracle else float(np.median(np.abs(oracle)))
     row["fits_at_iteration_limit"] = int(sum(f.get("fits_at_iteration_limit", 0) for f in folds))
-    row["calibration_power_median"] = float(np.median([f["calibration_power"] for f in folds]))
-    row["calibration_power_range"] = [float(np.min([f["calibration_power"] for f in folds])),
-                                      float(np.max([f["calibration_power"] for f in folds]))]
+    for key in ("calibration_power", "calibration_best_power"):  # the weighted mean power, the best one
+        powers = [f[key] for f in folds]
+        row[f"{key}_median"] = float(np.median(powers))
+        row[f"{key}_range"] = [float(np.min(powers)), float(np.max(powers))]
     return row | {
         "seconds_estimated": float(np.mean([f["seconds_estimated"] for f in folds])),
         "seconds_calibration": float(np.mean([f["seconds_calibration"] for f in folds])),
@@ -249,25 +271,32 @@ def render_markdown(rows: list[dict]) -> str:
         "",
         "## Calibrated timing likelihood",
         "",
-        "The same folds and linear-phase fits, the timing's likelihood raised to the power chosen by "
-        "`lmpromp_ppl.calibrate_timing` (the default of `lmpromp predict --duration estimate`): refits without "
-        "each of up to eight folds of the training demonstrations, each held-out training demonstration "
-        "observed for as long as the test observation, the power in [0, 1] that gives their true durations the "
-        "highest log density. `x true` and `x mean` are ratios to the true-timing and mean-timing RMSEs of the "
-        "first table.",
+        "The same folds and linear-phase fits, the timing's likelihood tempered as "
+        "`lmpromp_ppl.calibrate_timing` weighs it (the default of `lmpromp predict --duration estimate`): refits "
+        "without each of up to eight folds of the training demonstrations, each held-out training demonstration "
+        "observed for as long as the test observation; each candidate power in [0, 1] is weighed by the exponential "
+        "of the summed log density it gives their true durations (pseudo-BMA), and the prediction is averaged "
+        "over the mixture of the tempered posteriors. The power column is the weighted mean power of each fold "
+        "(median and range over folds). `x true` and `x mean` are ratios to the true-timing and mean-timing RMSEs "
+        "of the first table. The last columns use the best-scoring power alone instead of the average.",
         "",
-        "| dataset | power: median (range) | RMSE estimated, calibrated | x true | x mean | duration error "
-        "| 90 % coverage | s per calibration |",
-        "|---|---|---|---|---|---|---|---|",
+        "| dataset | mean power: median (range) | RMSE estimated, calibrated | x true | x mean | duration error "
+        "| 90 % coverage | s per calibration | best power: RMSE | x true | duration error | 90 % coverage |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
-        lo, hi = r["calibration_power_range"]
+        if r.get("rmse_calibrated_estimated") is None:  # a row kept from a report without the averaged powers
+            averaged = "| — " * 6
+        else:
+            lo, hi = r["calibration_power_range"]
+            averaged = (f"| {r['calibration_power_median']:.3g} ({lo:.3g}-{hi:.3g}) | "
+                        f"{r['rmse_calibrated_estimated']:.3g} | {r['ratio_calibrated_estimated']:.2f} | "
+                        f"{r['rmse_calibrated_estimated'] / r['rmse_mean']:.2f} | "
+                        f"{100 * r['calibrated_median_abs_relative_error']:.1f} % | {r['calibrated_coverage90']:.2f} ")
         lines.append(
-            f"| {r['dataset']} | {r['calibration_power_median']:.3g} ({lo:.3g}-{hi:.3g}) | "
-            f"{r['rmse_calibrated_estimated']:.3g} | {r['ratio_calibrated_estimated']:.2f} | "
-            f"{r['rmse_calibrated_estimated'] / r['rmse_mean']:.2f} | "
-            f"{100 * r['calibrated_median_abs_relative_error']:.1f} % | {r['calibrated_coverage90']:.2f} | "
-            f"{r['seconds_calibration']:.1f} |"
+            f"| {r['dataset']} {averaged}| {r['seconds_calibration']:.1f} | {r['rmse_best_estimated']:.3g} | "
+            f"{r['ratio_best_estimated']:.2f} | {100 * r['best_median_abs_relative_error']:.1f} % | "
+            f"{r['best_coverage90']:.2f} |"
         )
     return "\n".join(lines) + "\n"
 
