@@ -285,16 +285,13 @@ def render_markdown(rows: list[dict]) -> str:
         "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
-        if r.get("rmse_calibrated_estimated") is None:  # a row kept from a report without the averaged powers
-            averaged = "| — " * 6
-        else:
-            lo, hi = r["calibration_power_range"]
-            averaged = (f"| {r['calibration_power_median']:.3g} ({lo:.3g}-{hi:.3g}) | "
-                        f"{r['rmse_calibrated_estimated']:.3g} | {r['ratio_calibrated_estimated']:.2f} | "
-                        f"{r['rmse_calibrated_estimated'] / r['rmse_mean']:.2f} | "
-                        f"{100 * r['calibrated_median_abs_relative_error']:.1f} % | {r['calibrated_coverage90']:.2f} ")
+        lo, hi = r["calibration_power_range"]
         lines.append(
-            f"| {r['dataset']} {averaged}| {r['seconds_calibration']:.1f} | {r['rmse_best_estimated']:.3g} | "
+            f"| {r['dataset']} | {r['calibration_power_median']:.3g} ({lo:.3g}-{hi:.3g}) | "
+            f"{r['rmse_calibrated_estimated']:.3g} | {r['ratio_calibrated_estimated']:.2f} | "
+            f"{r['rmse_calibrated_estimated'] / r['rmse_mean']:.2f} | "
+            f"{100 * r['calibrated_median_abs_relative_error']:.1f} % | {r['calibrated_coverage90']:.2f} "
+            f"| {r['seconds_calibration']:.1f} | {r['rmse_best_estimated']:.3g} | "
             f"{r['ratio_best_estimated']:.2f} | {100 * r['best_median_abs_relative_error']:.1f} % | "
             f"{r['best_coverage90']:.2f} |"
         )
