@@ -371,6 +371,11 @@ class TimingCalibration(NamedTuple):
     observed_time: float
     num_unconverged: int = 0  # refits that stopped at the engine's iteration limit
 
+    @property
+    def mean_power(self) -> float:
+        """The weighted mean of the candidate powers (a summary of the average over them)."""
+        return float(np.sum(self.powers * self.weights))
+
 
 def calibrate_timing(result: FitResult, observed_time: float, *, folds: int = TIMING_FOLDS,
                      max_scored: int = TIMING_SCORED, max_draws: int = TIMING_DRAWS,

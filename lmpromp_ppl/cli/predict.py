@@ -172,8 +172,7 @@ def predict_command(
         if not np.any(seen):
             raise DataError("estimating the timing needs observed values at times (seconds)")
         calibration = calibrate_timing(result, float(np.max(t[seen])), max_start=max_start, progress=not quiet)
-        powers, power_weights = calibration.powers, calibration.weights
-        power = float(np.sum(powers * power_weights))
+        powers, power_weights, power = calibration.powers, calibration.weights, calibration.mean_power
     else:
         powers, power_weights = (1.0 if timing != "estimate" else power), None
     pred = predict_from_fit(result, t, y, duration=timing, max_start=max_start, via=via_points, noise_sd=noise_sd, bayesian=bayesian,

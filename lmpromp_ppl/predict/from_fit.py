@@ -26,11 +26,11 @@ from lmpromp_ppl._keys import PREDICTION, seed_key
 from lmpromp_ppl.errors import DataError, LmprompError
 from lmpromp_ppl.predict.conditioning import SITES, condition, condition_draws
 from lmpromp_ppl.predict.timing import (
-    _power_mixture,
     TimingCurve,
     TimingPosterior,
     ViaPoints,
     duration_prior,
+    power_mixture,
     rows_at,
     sample_over_timing,
     timed_moments,
@@ -285,7 +285,7 @@ def predict_from_fit(
         raise DataError(f"duration must be positive and finite, got {duration!r}")
     if max_start and not estimate:
         raise DataError("max_start needs duration='estimate'")
-    _power_mixture(timing_power, timing_weights)  # checked before any work
+    power_mixture(timing_power, timing_weights)  # checked before any work
     timed = duration is not None
     if not timed and (np.any(phase < 0) or np.any(phase > 1)):
         raise DataError("observation phases must lie in [0, 1]; pass a duration to map times to phases")

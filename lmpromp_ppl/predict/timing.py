@@ -83,6 +83,7 @@ __all__ = [
     "duration_prior",
     "timing_log_likelihood",
     "timing_posterior",
+    "power_mixture",
     "TimingCurve",
     "timing_curve",
     "tempered_log_score",
@@ -410,7 +411,7 @@ def timing_posterior(
         if log_hi <= log_lo:
             log_hi = log_lo + 6.0 * prior.scale
     basis = dict(exact=exact, num_dofs=num_dofs, num_basis=num_basis, width=width)
-    powers, log_mix = _power_mixture(power, power_weights)
+    powers, log_mix = power_mixture(power, power_weights)
 
     def evaluate(lo, hi):
         duration, start, log_cell, possible = _grid(lo, hi, starts, max_time, grid_size)
@@ -448,7 +449,7 @@ def timing_posterior(
     )
 
 
-def _power_mixture(power, power_weights) -> tuple[np.ndarray, np.ndarray]:
+def power_mixture(power, power_weights) -> tuple[np.ndarray, np.ndarray]:
     """The powers with positive weight and their log weights (normalised)."""
     powers = np.atleast_1d(np.asarray(power, dtype=float))
     if powers.ndim != 1 or powers.size == 0 or np.any(~np.isfinite(powers)) or np.any(powers < 0) or np.any(powers > 1):

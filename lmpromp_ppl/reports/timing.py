@@ -114,7 +114,7 @@ def calibrated_columns(result, t: np.ndarray, y: np.ndarray, seen: np.ndarray) -
 
     started = time.perf_counter()
     calibration = calibrate_timing(result, float(t[seen][-1]))
-    row = {"calibration_power": float(np.sum(calibration.powers * calibration.weights)),  # the weighted mean power
+    row = {"calibration_power": calibration.mean_power,
            "calibration_best_power": calibration.power, "seconds_calibration": time.perf_counter() - started}
     variants = (("calibrated_estimated", result, "estimate", (calibration.powers, calibration.weights)),
                 ("best_estimated", result, "estimate", (calibration.power, None)))
